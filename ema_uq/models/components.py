@@ -1,0 +1,78 @@
+"""Building blocks shared by the EMA concepts: loss torques, brake, smoothed sign and the
+parameter definitions common to both drive trains."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from ..params import Parameter
+
+DEG = math.pi / 180.0
+
+_BTS = "B in N m s/rad as seen at that point of the torque sum"
+_CTS = "C in N m as seen at that point of the torque sum"
+
+
+def _loss(name: str, nominal: float, where: str) -> Parameter:
+    viscous = name.startswith("B")
+    return Parameter(name, "N m s/rad" if viscous else "N m", nominal, 0.0, np.inf,
+                     description=f"{'viscous' if viscous else 'Coulomb'} loss of the {where} ({_BTS if viscous else _CTS})")
+
+
+def loss_parameters(values: dict[str, float]) -> tuple[Parameter, ...]:
+    """The 12 station loss parameters common to both concepts, in eq. 44 order."""
+    where = {"TS": "ball screw", "U": "U-joint", "TP": "bevel gear"}
+    out = []
+    for k in (1, 2):
+        for part in ("TS", "U", "TP"):
+            for kind in ("B", "C"):
+                name = f"{kind}_{part}{k}"
+                out.append(_loss(name, values[name], f"{where[part]} of station {k}"))
+    return tuple(out)
+
+
+def rig_gain(name: str, nominal: float, unit: str, what: str) -> Parameter:
+    """A controller gain with its rig-tuned value as a 2 % pseudo-measurement (ambiguity 4)."""
+    return Parameter(name, unit, nominal, nominal * 1e-3, nominal * 1e3,
+                     description=f"{what}, measured on the rig (prior/pseudo-measurement)",
+                     prior_std=0.02 * nominal)
+
+
+def const(name, unit, value, description):
+    return Parameter(name, unit, value, -np.inf, np.inf, free=False, description=description)
+
+
+BRAKE_AND_SETTINGS = (
+    const("M_Bmax", "N m", 100.0, "brake torque at standstill (eq. 3)"),
+    const("K_b", "1", 1.0, "electromagnetic brake constant (eq. 3)"),
+    const("Omega_half", "rad/s", 1.0, "speed of half the maximum brake torque (eq. 3)"),
+    Parameter("omega_eps", "rad/s", 0.05, 1e-9, np.inf, free=False,
+              description="speed scale of the smoothed sign tanh(v/omega_eps)"),
+)
+
+@njit(cache=True, inline="always")
+def smooth_sign(v, eps):
+    return math.tanh(v / eps)
+
+
+@njit(cache=True, inline="always")
+def brake_torque(engaged, speed, m_bmax, k_b, omega_half, eps):
+    """Eq. 3, acting against the motion; zero when the brake is released (engaged = 0)."""
+    if engaged == 0.0:
+        return 0.0
+    magnitude = m_bmax - 0.5 * m_bmax * (1.0 - math.exp(-k_b * abs(speed) / omega_half))
+    return engaged * magnitude * smooth_sign(speed, eps)
+
+
+@njit(cache=True, inline="always")
+def station_torques(omega_u, f_er, b_ts, c_ts, b_u, c_u, r, gamma, beta, eps):
+    """Ball screw and U-joint of one station (eqs. 10-15): returns M_ER, M_TSER, M_UER."""
+    m_er = -r * f_er * math.sin(gamma) * math.cos(gamma)
+    s_u = smooth_sign(omega_u, eps)
+    m_tser = b_ts * omega_u + c_ts * s_u + m_er
+    m_uer = m_tser / math.cos(beta) + b_u * omega_u + c_u * s_u
+    return m_er, m_tser, m_uer
+
+

@@ -1,0 +1,120 @@
+"""HT/LS concept (high torque / low speed, symmetric): MODEL_SPEC.md, eqs. 1-15, 32-38.
+
+One motor drives two stations, each bevel gear -> U-joint -> ball screw. The motor torque is
+commanded by cascaded P control; ``k_n`` only converts it to the measured current.
+The integer layouts below are the kernel's contract and must match the ParameterSets.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from ..params import Parameter, ParameterSet
+from .base import Model
+from .components import (BRAKE_AND_SETTINGS, DEG, brake_torque, const, loss_parameters,
+                         rig_gain, smooth_sign, station_torques)
+
+# --- estimated parameters Θ (eq. 44), kernel positions ----------------------------------
+(P_J, P_B_TS1, P_C_TS1, P_B_U1, P_C_U1, P_B_TP1, P_C_TP1,
+ P_B_TS2, P_C_TS2, P_B_U2, P_C_U2, P_B_TP2, P_C_TP2, P_K_N, P_P_ACE, P_P_PCE) = range(16)
+
+# --- design constants and settings, kernel positions ------------------------------------
+(C_I_TP1, C_I_TP2, C_R, C_GAMMA, C_BETA1, C_BETA2, C_M_MIN, C_M_MAX, C_K_Y,
+ C_M_BMAX, C_K_B, C_OMEGA_HALF, C_OMEGA_EPS) = range(13)
+
+# --- outputs (eq. 42 without the two gains) ---------------------------------------------
+OUTPUTS = ("Omega", "y1", "y2", "I_A", "Omega_TP1", "Omega_TP2", "Omega_U1", "Omega_U2",
+           "M_ER1", "M_ER2", "M_TSER1", "M_TSER2", "M_UER1", "M_UER2", "M_TPER1", "M_TPER2")
+OUTPUT_UNITS = ("rad/s", "m", "m", "A") + ("rad/s",) * 4 + ("N m",) * 8
+# theta (motor angle) is an auxiliary state: it feeds nothing in the nominal model and is
+# there for the angle-dependent unmodelled effects (U-joint kinematics, torque ripple).
+STATES = ("Omega", "y1", "y2", "theta")
+(X_OMEGA, X_Y1, X_Y2, X_THETA) = range(4)
+
+PARAMETERS = ParameterSet(
+    (Parameter("J", "kg m^2", 0.05, 1e-6, np.inf, description="inertia of rotating parts reduced to the motor shaft"),)
+    + loss_parameters({
+        "B_TS1": 0.40, "C_TS1": 1.20, "B_U1": 0.10, "C_U1": 0.30, "B_TP1": 0.20, "C_TP1": 0.60,
+        "B_TS2": 0.44, "C_TS2": 1.35, "B_U2": 0.09, "C_U2": 0.33, "B_TP2": 0.22, "C_TP2": 0.55,
+    })
+    + (
+        Parameter("k_n", "N m/A", 1.2, 1e-4, np.inf, description="motor torque constant"),
+        rig_gain("p_ACE", 2000.0, "(rad/s)/m", "position-loop gain of the ACE module"),
+        rig_gain("p_PCE", 10.0, "N m/(rad/s)", "speed-loop gain of the PCE module"),
+    )
+)
+
+
+CONSTANTS = ParameterSet((
+    const("i_TP1", "1", 2.0, "bevel-gear ratio, station 1"),
+    const("i_TP2", "1", 2.0, "bevel-gear ratio, station 2"),
+    const("r", "m", 0.016, "screw rolling radius"),
+    const("gamma", "rad", 4.0 * DEG, "screw lead angle"),
+    const("beta1", "rad", 3.0 * DEG, "U-joint angle, station 1"),
+    const("beta2", "rad", 5.0 * DEG, "U-joint angle, station 2"),
+    const("M_min", "N m", -80.0, "motor torque lower limit"),
+    const("M_max", "N m", 80.0, "motor torque upper limit"),
+    const("k_y", "m/rad", 0.3 / (40.0 * DEG), "flap command to carriage position"),
+) + BRAKE_AND_SETTINGS)
+
+MODEL = Model(
+    name="htls", model_id=0, title="HT/LS (high torque / low speed)",
+    states=STATES, outputs=OUTPUTS, output_units=OUTPUT_UNITS,
+    parameters=PARAMETERS, constants=CONSTANTS, integration_step=1e-3,
+)
+
+
+@njit(cache=True)
+def evaluate(x, u, th, c, dx, y):
+    """State derivative ``dx`` and all outputs ``y`` at state ``x`` and held input ``u``.
+
+    x = [Omega, y1, y2, theta]; u = [phi_r, F_ER1, F_ER2, brake]; th, c per the layouts above.
+    """
+    eps = c[C_OMEGA_EPS]
+    omega = x[X_OMEGA]
+    omega_tp1 = omega / c[C_I_TP1]
+    omega_tp2 = omega / c[C_I_TP2]
+    omega_u1 = omega_tp1  # g_U = 1 (eq. 7)
+    omega_u2 = omega_tp2
+
+    m_er1, m_tser1, m_uer1 = station_torques(omega_u1, u[1], th[P_B_TS1], th[P_C_TS1], th[P_B_U1],
+                                             th[P_C_U1], c[C_R], c[C_GAMMA], c[C_BETA1], eps)
+    m_er2, m_tser2, m_uer2 = station_torques(omega_u2, u[2], th[P_B_TS2], th[P_C_TS2], th[P_B_U2],
+                                             th[P_C_U2], c[C_R], c[C_GAMMA], c[C_BETA2], eps)
+    brake = u[3]
+    m_b21 = brake_torque(brake, omega_tp1, c[C_M_BMAX], c[C_K_B], c[C_OMEGA_HALF], eps)
+    m_b22 = brake_torque(brake, omega_tp2, c[C_M_BMAX], c[C_K_B], c[C_OMEGA_HALF], eps)
+    m_b1 = brake_torque(brake, omega, c[C_M_BMAX], c[C_K_B], c[C_OMEGA_HALF], eps)
+    m_tper1 = m_uer1 / c[C_I_TP1] + th[P_B_TP1] * omega_tp1 + th[P_C_TP1] * smooth_sign(omega_tp1, eps) + m_b21
+    m_tper2 = m_uer2 / c[C_I_TP2] + th[P_B_TP2] * omega_tp2 + th[P_C_TP2] * smooth_sign(omega_tp2, eps) + m_b22
+
+    # cascaded P control (eqs. 32-35, 38)
+    y_r = c[C_K_Y] * u[0]
+    y_s = 0.5 * (x[X_Y1] + x[X_Y2])
+    omega_r = th[P_P_ACE] * (y_r - y_s)
+    m_n = min(max(th[P_P_PCE] * (omega_r - omega), c[C_M_MIN]), c[C_M_MAX])
+
+    lead = c[C_R] * math.tan(c[C_GAMMA])
+    dx[X_OMEGA] = (m_n - (m_b1 + m_tper1 + m_tper2)) / th[P_J]
+    dx[X_Y1] = lead * omega_u1
+    dx[X_Y2] = lead * omega_u2
+    dx[X_THETA] = omega
+
+    y[0] = omega
+    y[1] = x[X_Y1]
+    y[2] = x[X_Y2]
+    y[3] = m_n / th[P_K_N]
+    y[4] = omega_tp1
+    y[5] = omega_tp2
+    y[6] = omega_u1
+    y[7] = omega_u2
+    y[8] = m_er1
+    y[9] = m_er2
+    y[10] = m_tser1
+    y[11] = m_tser2
+    y[12] = m_uer1
+    y[13] = m_uer2
+    y[14] = m_tper1
+    y[15] = m_tper2

@@ -1,0 +1,132 @@
+"""LT/HS concept (low torque / high speed, asymmetric): MODEL_SPEC.md, eqs. 16-31, 39-41.
+
+A fast voltage-controlled DC motor drives, through a magnetic gearbox and the input shaft,
+the first bevel gear; station 1 hangs on it directly, station 2 through a second bevel gear.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from ..params import Parameter, ParameterSet
+from .base import Model
+from .components import (BRAKE_AND_SETTINGS, DEG, brake_torque, const, loss_parameters,
+                         rig_gain, smooth_sign, station_torques)
+
+# --- estimated parameters Θ (eq. 47), kernel positions ----------------------------------
+(P_J, P_B_TS1, P_C_TS1, P_B_U1, P_C_U1, P_B_TP1, P_C_TP1,
+ P_B_TS2, P_C_TS2, P_B_U2, P_C_U2, P_B_TP2, P_C_TP2,
+ P_B_MG, P_C_MG, P_K_N, P_R_A, P_L_A, P_K_S, P_P_ACE, P_P_PCE) = range(21)
+
+# --- design constants and settings, kernel positions ------------------------------------
+(C_I_MG, C_I_BG1, C_I_BG2, C_I_TP2, C_R, C_GAMMA, C_BETA1, C_BETA2, C_K_Y, C_U_MAX, C_D_IS,
+ C_M_BMAX, C_K_B, C_OMEGA_HALF, C_OMEGA_EPS) = range(15)
+
+OUTPUTS = ("Omega", "y1", "y2", "I_A", "U_A", "Omega_MG", "Omega_TP1", "Omega_MG2", "Omega_TP2",
+           "Omega_U1", "Omega_U2", "M_ER1", "M_ER2", "M_TSER1", "M_TSER2", "M_UER1", "M_UER2",
+           "M_MG2", "M_TPER", "M_MGER")
+OUTPUT_UNITS = ("rad/s", "m", "m", "A", "V") + ("rad/s",) * 6 + ("N m",) * 9
+# theta (motor angle) is auxiliary: it drives D_IS (zero nominal) and the angle-dependent effects.
+STATES = ("I_A", "Omega", "y1", "y2", "theta")
+(X_I_A, X_OMEGA, X_Y1, X_Y2, X_THETA) = range(5)
+
+PARAMETERS = ParameterSet(
+    (Parameter("J", "kg m^2", 4e-4, 1e-8, np.inf, description="inertia of rotating parts reduced to the motor shaft"),)
+    + loss_parameters({
+        "B_TS1": 0.40, "C_TS1": 1.20, "B_U1": 0.10, "C_U1": 0.30, "B_TP1": 0.05, "C_TP1": 0.30,
+        "B_TS2": 0.44, "C_TS2": 1.35, "B_U2": 0.09, "C_U2": 0.33, "B_TP2": 0.11, "C_TP2": 0.28,
+    })
+    + (
+        Parameter("B_MG", "N m s/rad", 0.01, 0.0, np.inf, description="viscous loss of the magnetic gearbox"),
+        Parameter("C_MG", "N m", 0.40, 0.0, np.inf, description="Coulomb loss of the magnetic gearbox"),
+        Parameter("k_n", "N m/A", 0.08, 1e-5, np.inf, description="motor torque constant"),
+        Parameter("R_A", "ohm", 0.3, 1e-5, np.inf, description="armature resistance"),
+        Parameter("L_A", "H", 1e-3, 1e-7, np.inf, description="armature inductance"),
+        Parameter("k_s", "V s/rad", 0.08, 1e-5, np.inf, description="back-EMF constant"),
+        rig_gain("p_ACE", 35000.0, "(rad/s)/m", "position-loop gain of the ACE module"),
+        rig_gain("p_PCE", 0.08, "N m/(rad/s)", "speed-loop gain of the PCE module"),
+    )
+)
+
+CONSTANTS = ParameterSet((
+    const("i_MG", "1", 20.0, "magnetic gearbox ratio"),
+    const("i_BG1", "1", 2.0, "first bevel gear ratio to station 1"),
+    const("i_BG2", "1", 1.0, "first bevel gear ratio to the station-2 shaft"),
+    const("i_TP2", "1", 2.0, "second bevel gear ratio (station 2)"),
+    const("r", "m", 0.016, "screw rolling radius"),
+    const("gamma", "rad", 4.0 * DEG, "screw lead angle"),
+    const("beta1", "rad", 3.0 * DEG, "U-joint angle, station 1"),
+    const("beta2", "rad", 5.0 * DEG, "U-joint angle, station 2"),
+    const("k_y", "m/rad", 0.3 / (40.0 * DEG), "flap command to carriage position"),
+    const("U_max", "V", 135.0, "armature voltage limit"),
+    const("D_IS", "N m/rad", 0.0, "input-shaft stiffness (eq. 22; zero nominal)"),
+) + BRAKE_AND_SETTINGS)
+
+MODEL = Model(
+    name="lths", model_id=1, title="LT/HS (low torque / high speed)",
+    states=STATES, outputs=OUTPUTS, output_units=OUTPUT_UNITS,
+    parameters=PARAMETERS, constants=CONSTANTS, integration_step=5e-4,
+)
+
+
+@njit(cache=True)
+def evaluate(x, u, th, c, dx, y):
+    """State derivative ``dx`` and all outputs ``y``; x = [I_A, Omega, y1, y2, theta]."""
+    eps = c[C_OMEGA_EPS]
+    i_a = x[X_I_A]
+    omega = x[X_OMEGA]
+    omega_mg = omega / c[C_I_MG]
+    omega_tp1 = omega_mg / c[C_I_BG1]
+    omega_mg2 = omega_mg / c[C_I_BG2]
+    omega_tp2 = omega_mg2 / c[C_I_TP2]
+    omega_u1 = omega_tp1  # g_U = 1 (eq. 26)
+    omega_u2 = omega_tp2
+
+    m_er1, m_tser1, m_uer1 = station_torques(omega_u1, u[1], th[P_B_TS1], th[P_C_TS1], th[P_B_U1],
+                                             th[P_C_U1], c[C_R], c[C_GAMMA], c[C_BETA1], eps)
+    m_er2, m_tser2, m_uer2 = station_torques(omega_u2, u[2], th[P_B_TS2], th[P_C_TS2], th[P_B_U2],
+                                             th[P_C_U2], c[C_R], c[C_GAMMA], c[C_BETA2], eps)
+    brake = u[3]
+    m_b22 = brake_torque(brake, omega_tp2, c[C_M_BMAX], c[C_K_B], c[C_OMEGA_HALF], eps)
+    m_b2 = brake_torque(brake, omega_tp1, c[C_M_BMAX], c[C_K_B], c[C_OMEGA_HALF], eps)
+    m_mg2 = m_uer2 / c[C_I_TP2] + th[P_B_TP2] * omega_tp2 + th[P_C_TP2] * smooth_sign(omega_tp2, eps) + m_b22
+    m_tper = (m_uer1 / c[C_I_BG1] + m_mg2 / c[C_I_BG2] + th[P_B_TP1] * omega_tp1
+              + th[P_C_TP1] * smooth_sign(omega_tp1, eps) + m_b2)
+    m_iser = m_tper + c[C_D_IS] * x[X_THETA] / c[C_I_MG]
+    m_mger = m_iser / c[C_I_MG] + th[P_B_MG] * omega_mg + th[P_C_MG] * smooth_sign(omega_mg, eps)
+
+    # cascaded P control (eq. 41), voltage-limited
+    y_r = c[C_K_Y] * u[0]
+    y_s = 0.5 * (x[X_Y1] + x[X_Y2])
+    u_a = th[P_P_PCE] / th[P_K_N] * (th[P_P_ACE] * (y_r - y_s) - omega)
+    u_a = min(max(u_a, -c[C_U_MAX]), c[C_U_MAX])
+
+    lead = c[C_R] * math.tan(c[C_GAMMA])
+    dx[X_I_A] = (-th[P_R_A] * i_a - th[P_K_S] * omega + u_a) / th[P_L_A]
+    dx[X_OMEGA] = (th[P_K_N] * i_a - m_mger) / th[P_J]
+    dx[X_Y1] = lead * omega_u1
+    dx[X_Y2] = lead * omega_u2
+    dx[X_THETA] = omega
+
+    y[0] = omega
+    y[1] = x[X_Y1]
+    y[2] = x[X_Y2]
+    y[3] = i_a
+    y[4] = u_a
+    y[5] = omega_mg
+    y[6] = omega_tp1
+    y[7] = omega_mg2
+    y[8] = omega_tp2
+    y[9] = omega_u1
+    y[10] = omega_u2
+    y[11] = m_er1
+    y[12] = m_er2
+    y[13] = m_tser1
+    y[14] = m_tser2
+    y[15] = m_uer1
+    y[16] = m_uer2
+    y[17] = m_mg2
+    y[18] = m_tper
+    y[19] = m_mger
