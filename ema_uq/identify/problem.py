@@ -1,0 +1,187 @@
+"""The output-error estimation problem: data, channel selection, parameter layout and the
+det R likelihood, all evaluated through one batched simulator call.
+
+Objective minimised by both optimisers (negative log-likelihood, concentrated over R):
+
+    V(Θ) = (N/2) log det R(Θ) + ½ Σ_j ((Θ_j - Θ_j,rig) / σ_j,rig)²
+
+where R = (1/N) Σ_k e_k e_kᵀ over every complete sample of every experiment (eqs. 48-49)
+and the second sum runs over parameters with a rig pseudo-measurement (MODEL_SPEC,
+resolved ambiguity 4). Minimising V is minimising det R when no pseudo-measurement is free.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+from ..experiments import Measurement
+from ..models import Model, get_model
+from ..params import ParameterSet
+from ..simulate import simulate_batch
+
+
+class IdentificationError(ValueError):
+    """Bad estimation input (wrong concept, no usable channel, start outside bounds) or
+    a problem the data cannot answer (singular information matrix)."""
+
+
+@dataclass(frozen=True)
+class _Block:
+    """One experiment's data restricted to the fitted channels and complete samples."""
+
+    time: np.ndarray          # (n_samples,)
+    inputs: np.ndarray        # (n_samples, n_inputs)
+    rows: np.ndarray          # indices of complete samples, (n_valid,)
+    observed: np.ndarray      # (n_valid, n_channels)
+
+
+@dataclass(frozen=True)
+class FitProblem:
+    """Measurements of one concept joined for a joint fit.
+
+    Parameters
+    ----------
+    measurements : one or more :class:`Measurement` of the same concept.
+    parameters : layout, bounds, free flags and rig pseudo-measurements (nominal + prior_std);
+        default: the concept's own set.
+    channels : fitted output channels (default: every channel present in all measurements).
+    constants : design constants vector (default: nominal).
+    """
+
+    measurements: Sequence[Measurement]
+    parameters: ParameterSet | None = None
+    channels: Sequence[str] | None = None
+    constants: np.ndarray | None = None
+    model: Model = field(init=False)
+    blocks: tuple[_Block, ...] = field(init=False, repr=False)
+    channel_index: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        measurements = tuple(self.measurements)
+        if not measurements:
+            raise IdentificationError("no measurement given; pass at least one data file")
+        concepts = {m.concept for m in measurements}
+        if len(concepts) != 1:
+            raise IdentificationError(
+                f"measurements mix concepts {sorted(concepts)}; fit one concept at a time"
+            )
+        model = get_model(measurements[0].concept)
+        parameters = model.parameters if self.parameters is None else self.parameters
+        if parameters.names != model.parameters.names:
+            raise IdentificationError(
+                f"parameter layout {parameters.names} does not match concept {model.name}"
+            )
+        if not parameters.free_names:
+            raise IdentificationError("every parameter is fixed; free at least one to estimate")
+        common = [c for c in measurements[0].channels if all(c in m.channels for m in measurements)]
+        channels = tuple(common if self.channels is None else self.channels)
+        if not channels:
+            raise IdentificationError(
+                "no usable channel: the measurements share no output channel; give data with at least one common channel"
+            )
+        model.output_index(channels)
+        for m in measurements:
+            missing = [c for c in channels if c not in m.channels]
+            if missing:
+                raise IdentificationError(
+                    f"channel(s) {', '.join(missing)} missing from measurement {m.experiment.name!r}; "
+                    "choose channels every data set has"
+                )
+        blocks = []
+        for m in measurements:
+            z = m.select(channels).values
+            for j, ch in enumerate(channels):
+                if not np.any(np.isfinite(z[:, j])):
+                    raise IdentificationError(
+                        f"channel {ch} of {m.experiment.name!r} has no valid sample (all NaN); drop it from the channels"
+                    )
+            rows = np.flatnonzero(np.all(np.isfinite(z), axis=1))
+            blocks.append(_Block(m.time, m.experiment.input_matrix(model), rows, z[rows]))
+        n_valid = sum(b.rows.size for b in blocks)
+        if n_valid <= len(channels) + len(parameters.free_names):
+            raise IdentificationError(
+                f"only {n_valid} complete samples for {len(channels)} channels and "
+                f"{len(parameters.free_names)} free parameters; give more data or fewer channels"
+            )
+        consts = model.constants_vector() if self.constants is None else np.asarray(self.constants, float)
+        object.__setattr__(self, "measurements", measurements)
+        object.__setattr__(self, "model", model)
+        object.__setattr__(self, "parameters", parameters)
+        object.__setattr__(self, "channels", channels)
+        object.__setattr__(self, "constants", consts)
+        object.__setattr__(self, "blocks", tuple(blocks))
+        object.__setattr__(self, "channel_index", model.output_index(channels))
+
+    # --- sizes -------------------------------------------------------------------
+    @property
+    def n_samples(self) -> int:
+        """N: complete samples over all experiments."""
+        return sum(b.rows.size for b in self.blocks)
+
+    @property
+    def free_index(self) -> np.ndarray:
+        return self.parameters.free_index
+
+    @property
+    def observed(self) -> np.ndarray:
+        """(N, n_channels) measured values of every complete sample."""
+        return np.concatenate([b.observed for b in self.blocks])
+
+    # --- model evaluation ----------------------------------------------------------
+    def full_vectors(self, free_values: np.ndarray, base: np.ndarray) -> np.ndarray:
+        """Embed (n_sets, n_free) free values into full parameter vectors around ``base``."""
+        free_values = np.atleast_2d(free_values)
+        full = np.repeat(base[None, :], free_values.shape[0], axis=0)
+        full[:, self.free_index] = free_values
+        return full
+
+    def predict(self, thetas: np.ndarray) -> np.ndarray:
+        """Predicted channels (n_sets, N, n_channels) for full parameter vectors (n_sets, n_params).
+
+        Every experiment is one batched simulator call over all sets.
+        """
+        thetas = np.atleast_2d(thetas)
+        parts = []
+        for b in self.blocks:
+            out = simulate_batch(self.model, thetas, b.time, b.inputs, constants=self.constants)
+            parts.append(out[:, b.rows][:, :, self.channel_index])
+        return np.concatenate(parts, axis=1)
+
+    def residuals(self, thetas: np.ndarray) -> np.ndarray:
+        """z - y, (n_sets, N, n_channels)."""
+        return self.observed[None] - self.predict(thetas)
+
+    # --- likelihood ------------------------------------------------------------------
+    def prior_terms(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Free-parameter positions (in the free vector), rig values and rig σ of pseudo-measurements."""
+        pos, mean, std = [], [], []
+        for k, i in enumerate(self.free_index):
+            p = self.parameters.parameters[i]
+            if p.prior_std is not None:
+                pos.append(k)
+                mean.append(p.nominal)
+                std.append(p.prior_std)
+        return np.array(pos, dtype=int), np.array(mean), np.array(std)
+
+    def objective(self, residuals: np.ndarray, free_values: np.ndarray) -> tuple[float, float]:
+        """(V, log det R) for one residual array (N, n_channels) at free parameter values."""
+        r = covariance(residuals)
+        logdet = log_det(r)
+        pos, mean, std = self.prior_terms()
+        prior = 0.5 * float(np.sum(((free_values[pos] - mean) / std) ** 2)) if pos.size else 0.0
+        return 0.5 * self.n_samples * logdet + prior, logdet
+
+
+def covariance(residuals: np.ndarray) -> np.ndarray:
+    """R = (1/N) Σ e eᵀ of (N, n_channels) residuals (eq. 49), or a batch (n_sets, N, n_ch)."""
+    n = residuals.shape[-2]
+    return np.einsum("...ki,...kj->...ij", residuals, residuals) / n
+
+
+def log_det(r: np.ndarray) -> float:
+    sign, logdet = np.linalg.slogdet(r)
+    if sign <= 0 or not np.isfinite(logdet):
+        return np.inf
+    return float(logdet)

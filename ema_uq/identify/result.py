@@ -1,0 +1,158 @@
+"""The estimation result: estimates, Cramér-Rao bounds, correlations, flags and history,
+with an lmfit-style report and the FIT.json form of INTERFACES.md."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+HIGH_CORRELATION = 0.9
+
+
+@dataclass
+class FitResult:
+    """Outcome of one maximum-likelihood fit.
+
+    ``estimate`` holds the full parameter vector (fixed ones at their given value);
+    ``covariance`` is the inverse information matrix over the free parameters (Cramér-Rao
+    bound), ``std`` its square-root diagonal expanded to the full layout (0 for fixed ones,
+    NaN where the information matrix gives no bound).
+    """
+
+    concept: str
+    method: str
+    names: tuple[str, ...]
+    units: tuple[str, ...]
+    free: np.ndarray
+    start: np.ndarray
+    estimate: np.ndarray
+    std: np.ndarray
+    covariance: np.ndarray
+    channels: tuple[str, ...]
+    residual_covariance: np.ndarray
+    log_det_r: float
+    objective: float
+    n_samples: int
+    converged: bool
+    message: str
+    iterations: int
+    n_simulations: int
+    wall_time_s: float
+    history: list[dict[str, Any]] = field(default_factory=list)
+    at_bounds: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+    seed: int | None = None
+    provenance: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def free_names(self) -> tuple[str, ...]:
+        return tuple(n for n, f in zip(self.names, self.free) if f)
+
+    @property
+    def cost(self) -> float:
+        """det R at the estimate (eq. 48); may underflow for many channels — see ``log_det_r``."""
+        return float(np.exp(self.log_det_r))
+
+    @property
+    def correlation(self) -> np.ndarray:
+        sd = np.sqrt(np.diag(self.covariance))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return self.covariance / np.outer(sd, sd)
+
+    def high_correlations(self, threshold: float = HIGH_CORRELATION) -> list[tuple[str, str, float]]:
+        corr, names = self.correlation, self.free_names
+        pairs = []
+        for i in range(len(names)):
+            for j in range(i + 1, len(names)):
+                if abs(corr[i, j]) > threshold:
+                    pairs.append((names[i], names[j], float(corr[i, j])))
+        return pairs
+
+    def value(self, name: str) -> float:
+        return float(self.estimate[self.names.index(name)])
+
+    def as_dict(self) -> dict[str, float]:
+        return {n: float(v) for n, v in zip(self.names, self.estimate)}
+
+    def summary(self) -> str:
+        lines = [
+            f"[[Fit: {self.concept} by ML {self.method.upper()}]]",
+            f"    converged          = {self.converged} ({self.message})",
+            f"    iterations         = {self.iterations}",
+            f"    simulations        = {self.n_simulations}",
+            f"    wall time          = {self.wall_time_s:.2f} s",
+            f"    samples, channels  = {self.n_samples}, {len(self.channels)}",
+            f"    log det R          = {self.log_det_r:.6g}",
+            "[[Parameters]] (std = Cramér-Rao bound)",
+        ]
+        for i, name in enumerate(self.names):
+            tag = "" if self.free[i] else " (fixed)"
+            if name in self.at_bounds:
+                tag += " (at bound)"
+            rel = abs(self.std[i] / self.estimate[i]) * 100 if self.estimate[i] else np.nan
+            lines.append(f"    {name:<8} = {self.estimate[i]:>12.6g} +/- {self.std[i]:<10.3g} "
+                         f"({rel:5.2f}%) {self.units[i]}{tag}  (init = {self.start[i]:.6g})")
+        pairs = self.high_correlations()
+        if pairs:
+            lines.append(f"[[Correlations]] (|rho| > {HIGH_CORRELATION})")
+            lines += [f"    C({a}, {b}) = {r:+.3f}" for a, b, r in pairs]
+        for w in self.warnings:
+            lines.append(f"    warning: {w}")
+        return "\n".join(lines)
+
+    def to_json(self) -> dict[str, Any]:
+        corr = self.correlation
+        free_names = self.free_names
+        return {
+            "concept": self.concept,
+            "method": self.method,
+            "converged": bool(self.converged),
+            "message": self.message,
+            "iterations": int(self.iterations),
+            "cost": self.cost,
+            "log_det_R": self.log_det_r,
+            "objective": self.objective,
+            "n_samples": self.n_samples,
+            "n_simulations": int(self.n_simulations),
+            "wall_time_s": float(self.wall_time_s),
+            "seed": self.seed,
+            "channels": list(self.channels),
+            "parameters": {
+                n: {"estimate": float(self.estimate[i]), "std": float(self.std[i]), "unit": self.units[i],
+                    "start": float(self.start[i]), "free": bool(self.free[i]), "at_bound": n in self.at_bounds}
+                for i, n in enumerate(self.names)
+            },
+            "free_parameters": list(free_names),
+            "covariance": self.covariance.tolist(),
+            "correlation": np.where(np.isfinite(corr), corr, None).tolist(),
+            "high_correlations": [{"a": a, "b": b, "rho": r} for a, b, r in self.high_correlations()],
+            "at_bounds": list(self.at_bounds),
+            "residual_covariance": self.residual_covariance.tolist(),
+            "warnings": list(self.warnings),
+            "history": self.history,
+            "provenance": self.provenance,
+        }
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> "FitResult":
+        names = tuple(data["parameters"])
+        par = data["parameters"]
+        return cls(
+            concept=data["concept"], method=data["method"], names=names,
+            units=tuple(par[n].get("unit", "") for n in names),
+            free=np.array([par[n].get("free", True) for n in names]),
+            start=np.array([par[n].get("start", np.nan) for n in names], dtype=float),
+            estimate=np.array([par[n]["estimate"] for n in names], dtype=float),
+            std=np.array([np.nan if par[n]["std"] is None else par[n]["std"] for n in names], dtype=float),
+            covariance=np.array(data.get("covariance", []), dtype=float),
+            channels=tuple(data.get("channels", ())),
+            residual_covariance=np.array(data.get("residual_covariance", []), dtype=float),
+            log_det_r=float(data.get("log_det_R", np.nan)), objective=float(data.get("objective", np.nan)),
+            n_samples=int(data.get("n_samples", 0)), converged=bool(data["converged"]),
+            message=data.get("message", ""), iterations=int(data["iterations"]),
+            n_simulations=int(data.get("n_simulations", 0)), wall_time_s=float(data.get("wall_time_s", 0.0)),
+            history=list(data.get("history", [])), at_bounds=list(data.get("at_bounds", [])),
+            warnings=list(data.get("warnings", [])), seed=data.get("seed"),
+            provenance=dict(data.get("provenance", {})),
+        )
