@@ -1,7 +1,7 @@
 """Maximum-likelihood identification (output error, det R) with Gauss-Newton and
 Levenberg-Marquardt, Cramér-Rao bounds and validation on fresh data."""
 from .problem import FitProblem, IdentificationError, covariance
-from .estimators import Settings, estimate
+from .estimators import Settings, estimate, perturbed_start
 from .result import FitResult
 
-__all__ = ["FitProblem", "IdentificationError", "covariance", "Settings", "estimate", "FitResult"]
+__all__ = ["FitProblem", "IdentificationError", "covariance", "Settings", "estimate", "perturbed_start", "FitResult"]

@@ -153,6 +153,17 @@ class _LevenbergMarquardt:
         return None, {"lambda": self.lam, "increases": settings.lm_max_increases}
 
 
+def perturbed_start(parameters, fraction: float, seed: int, around: np.ndarray | None = None) -> np.ndarray:
+    """Free parameters independently scaled by (1 + U(-fraction, fraction)), seeded, kept in bounds."""
+    if not 0 <= fraction < 1:
+        raise IdentificationError(f"perturbation fraction must be in [0, 1), got {fraction}")
+    base = parameters.nominal if around is None else np.asarray(around, dtype=float)
+    rng = np.random.default_rng(seed)
+    factors = 1.0 + rng.uniform(-fraction, fraction, len(parameters))
+    start = np.where(parameters.free_mask, base * factors, base)
+    return np.clip(start, parameters.lower, parameters.upper)
+
+
 def estimate(
     problem: FitProblem,
     *,
