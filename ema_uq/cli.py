@@ -180,11 +180,131 @@ def _run_simulate(args: argparse.Namespace) -> str:
             f"{len(measurement.channels)} channels, noise {args.noise:g}, seed {args.seed}")
 
 
+def _add_data(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("data", nargs="+", metavar="DATA", help="measurement files (.nc or .csv)")
+
+
+def _read_all(paths: Sequence[str], concept: str):
+    from . import io
+
+    return [io.read_measurement(p, concept=concept) for p in paths]
+
+
+def _read_fit(path: str, concept: str):
+    """A FIT.json of the same concept (``--start``/``--init``)."""
+    from . import io
+    from .identify import FitResult
+
+    data = io.read_json(path)
+    if not isinstance(data, dict) or "parameters" not in data or "concept" not in data:
+        raise CLIError(f"{path} is not a FIT.json written by 'ema-uq identify'")
+    if data["concept"] != concept:
+        raise CLIError(f"{path} holds a fit of concept {data['concept']}, but --concept {concept} was given; "
+                       "use a fit of the same concept")
+    return FitResult.from_json(data)
+
+
+def _add_identify(subparsers) -> None:
+    p = subparsers.add_parser(
+        "identify", help="maximum-likelihood parameter estimation (det R; Gauss-Newton or Levenberg-Marquardt)",
+        description="Estimate the free parameters from one or more measurement files by output-error "
+                    "maximum likelihood (cost det R) and write estimates, Cramér-Rao bounds, correlations "
+                    "and the iteration history to FIT.json.")
+    _add_data(p)
+    _add_concept(p)
+    p.add_argument("--method", choices=("gn", "lm"), default="gn",
+                   help="gn: Gauss-Newton with step halving; lm: Levenberg-Marquardt (default gn)")
+    p.add_argument("--start", default="nominal", metavar="nominal|FIT.json",
+                   help="start values: the nominal set or the estimate of an earlier fit")
+    p.add_argument("--perturb", type=_fraction, default=0.0, metavar="FRACTION",
+                   help="scale each free start value by 1+U(-FRACTION, FRACTION), seeded by --seed")
+    _add_seed(p)
+    _add_set(p)
+    p.add_argument("--fix", nargs="+", default=[], metavar="NAME", help="hold these parameters at their value")
+    p.add_argument("--channels", nargs="+", metavar="NAME", help="fit only these channels (default: all common)")
+    p.add_argument("--validate", nargs="+", default=[], metavar="DATA",
+                   help="data NOT used for estimation: report per-channel fit and residual tests")
+    p.add_argument("--max-iterations", type=int, default=50, metavar="N")
+    p.add_argument("--out", required=True, metavar="FIT.json")
+    p.set_defaults(handler=_run_identify)
+
+
+def _run_identify(args: argparse.Namespace) -> str:
+    from . import io
+    from .identify import FitProblem, Settings, estimate, perturbed_start
+    from .identify.validation import validate
+    from .models import get_model
+    from .provenance import provenance
+
+    model = get_model(args.concept)
+    theta, constants = _model_vectors(model, args.set)
+    parameters = model.parameters.with_nominal(model.parameters.as_dict(theta)).fixing(args.fix)
+    io.prepare_output(args.out)
+    measurements = _read_all(args.data, args.concept)
+    validation_data = _read_all(args.validate, args.concept)
+    problem = FitProblem(measurements, parameters=parameters, channels=_names(args.channels), constants=constants)
+    start = theta if args.start == "nominal" else _read_fit(args.start, args.concept).estimate
+    if args.perturb > 0:
+        start = perturbed_start(parameters, args.perturb, args.seed, around=start)
+    fit = estimate(problem, method=args.method, start=start, seed=args.seed,
+                   settings=Settings(max_iterations=args.max_iterations))
+    fit.provenance = provenance(args.data + args.validate, seed=args.seed,
+                                settings={k: v for k, v in vars(args).items() if k != "handler"})
+    out = fit.to_json()
+    out["validation"] = [validate(fit.estimate, m, channels=problem.channels, constants=constants).to_json()
+                         for m in validation_data]
+    io.write_json(args.out, out)
+    worst = min((c["fit_percent"] for v in out["validation"] for c in v["channels"].values()), default=None)
+    tail = f", validation worst-channel fit {worst:.1f} %" if worst is not None else ""
+    return (f"wrote {args.out}: {model.name} {args.method.upper()} "
+            f"{'converged' if fit.converged else 'NOT converged'} in {fit.iterations} iterations, "
+            f"{fit.n_simulations} simulations, {fit.wall_time_s:.1f} s{tail}")
+
+
+def _add_report(subparsers) -> None:
+    p = subparsers.add_parser("report", help="write the self-contained HTML report of a study",
+                              description="Collect a study's result files into one HTML report with embedded figures.")
+    p.add_argument("--study", required=True, metavar="STUDY.yaml")
+    p.add_argument("--results", required=True, metavar="DIR", help="the study's results folder")
+    p.add_argument("--out", required=True, metavar="REPORT.html")
+    p.set_defaults(handler=_run_report)
+
+
+def _run_report(args: argparse.Namespace) -> str:
+    from pathlib import Path
+
+    from .report import build_report
+    from .study import load_study
+
+    study = load_study(args.study)
+    if not Path(args.results).is_dir():
+        raise CLIError(f"results folder {args.results} does not exist; run the workflow first")
+    text = build_report(study, args.study, args.results)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(text, encoding="utf-8")
+    return f"wrote {out} ({len(text) / 1e6:.1f} MB)"
+
+
+def _add_check_study(subparsers) -> None:
+    p = subparsers.add_parser("check-study", help="validate a study file against the schema",
+                              description="Validate a study YAML against the package schema; print it with defaults.")
+    p.add_argument("study", metavar="STUDY.yaml")
+    p.set_defaults(handler=_run_check_study)
+
+
+def _run_check_study(args: argparse.Namespace) -> str:
+    from .study import load_study
+
+    study = load_study(args.study)
+    return f"{args.study}: valid study {study['name']!r} ({study['concept']})"
+
+
 # --------------------------------------------------------------------------------------
 # entry point
 # --------------------------------------------------------------------------------------
 #: Register functions, one per verb, in the order ``--help`` lists them.
-VERBS: tuple[Callable, ...] = (_add_simulate,)
+VERBS: tuple[Callable, ...] = (_add_simulate, _add_identify, _add_report, _add_check_study)
 
 
 def build_parser() -> argparse.ArgumentParser:

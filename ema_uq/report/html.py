@@ -1,0 +1,144 @@
+"""Assemble one self-contained HTML report per study from the workflow's result files.
+
+Each stage contributes a section when its result file exists; a missing stage is listed
+as not run, never silently dropped.
+"""
+from __future__ import annotations
+
+import html
+from importlib import resources
+from pathlib import Path
+from string import Template
+from typing import Any
+
+import numpy as np
+
+from .. import io
+from ..models import get_model
+from ..provenance import file_sha256, settings_hash
+from ..simulate import simulate_batch
+from . import figures
+
+TEMPLATE = "report/templates/report.html"
+
+
+def _table(header: list[str], rows: list[list[Any]], name_cols: int = 1) -> str:
+    head = "".join(f'<th class="{"name" if i < name_cols else ""}">{html.escape(h)}</th>' for i, h in enumerate(header))
+    body = []
+    for row in rows:
+        cells = "".join(f'<td class="{"name" if i < name_cols else ""}">{c}</td>' for i, c in enumerate(row))
+        body.append(f"<tr>{cells}</tr>")
+    return f"<table><tr>{head}</tr>{''.join(body)}</table>"
+
+
+def _fmt(x: float | None, digits: int = 5) -> str:
+    if x is None or not np.isfinite(x):
+        return '<span class="muted">–</span>'
+    return f"{x:.{digits}g}"
+
+
+def _img(fig, alt: str) -> str:
+    return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{figures.to_png_base64(fig)}">'
+
+
+def _identification_section(study: dict, results: Path) -> tuple[str, dict]:
+    model = get_model(study["concept"])
+    fits = {}
+    for method in study["identify"]["methods"]:
+        path = results / f"fit_{method}.json"
+        if path.exists():
+            fits[method.upper()] = io.read_json(path)
+    if not fits:
+        return '<p class="muted">Identification not run.</p>', {}
+    truth = model.parameters.vector(study["data"].get("set", {}))
+    names = model.parameters.names
+    header = ["parameter", "unit", "truth"] + [f"{k} estimate" for k in fits] + [f"{k} CRB σ" for k in fits] \
+        + [f"{k} (est−truth)/σ" for k in fits]
+    rows = []
+    for i, n in enumerate(names):
+        est = [fits[k]["parameters"][n]["estimate"] for k in fits]
+        std = [fits[k]["parameters"][n]["std"] for k in fits]
+        z = [((e - truth[i]) / s) if s else None for e, s in zip(est, std)]
+        rows.append([n, model.parameters[n].unit, _fmt(truth[i])] + [_fmt(e, 6) for e in est]
+                    + [_fmt(s, 3) for s in std] + [_fmt(v, 2) for v in z])
+    summary_rows = [[k, "yes" if f["converged"] else '<span class="flag">no</span>', f["iterations"],
+                     f["n_simulations"], f"{f['wall_time_s']:.2f}", _fmt(f["log_det_R"], 8),
+                     html.escape(f.get("message", ""))] for k, f in fits.items()]
+    parts = ["<h3>Fits</h3>", _table(["method", "converged", "iterations", "simulations", "wall time [s]",
+                                      "log det R", "stop"], summary_rows)]
+    parts += ["<h3>Parameters</h3>",
+              "<p>Truth is the value that generated the synthetic data; σ is the Cramér-Rao bound.</p>",
+              _table(header, rows, name_cols=2)]
+    for k, f in fits.items():
+        if f.get("high_correlations"):
+            pairs = ", ".join(f"{p['a']}–{p['b']} ({p['rho']:+.2f})" for p in f["high_correlations"])
+            parts.append(f'<p class="flag">{k}: |ρ| &gt; 0.9 for {html.escape(pairs)}</p>')
+        for w in f.get("warnings", []):
+            parts.append(f'<p class="flag">{k}: {html.escape(w)}</p>')
+
+    parts.append("<h3>Measured vs identified model (paper Fig. 2/3)</h3>")
+    for role in ("estimation", "validation"):
+        path = results / "data" / f"{role}.nc"
+        if not path.exists():
+            continue
+        meas = io.read_measurement(path, concept=model.name)
+        channels = [c for c in meas.channels if c in next(iter(fits.values()))["channels"]][:8]
+        idx = model.output_index(channels)
+        preds = {}
+        for k, f in fits.items():
+            theta = np.array([f["parameters"][n]["estimate"] for n in names])
+            preds[k] = simulate_batch(model, theta, meas.time, meas.experiment.input_matrix(model))[:, idx]
+        fig = figures.fit_comparison(meas.time, meas.select(channels).values, preds, channels,
+                                     [model.unit_of(c) for c in channels],
+                                     title=f"{model.title}: {role} data ({meas.experiment.name})")
+        parts.append(_img(fig, f"{role} comparison"))
+    parts.append("<h3>Convergence</h3>")
+    parts.append(_img(figures.convergence({k: f["history"] for k, f in fits.items()}), "convergence"))
+
+    val_rows = []
+    for k, f in fits.items():
+        for v in f.get("validation", []):
+            for ch, c in v["channels"].items():
+                val_rows.append([k, ch, f"{c['fit_percent']:.2f}", f"{c['nrmse']:.4f}",
+                                 _fmt(c["ljung_box_p"], 3), "yes" if c["white"] else '<span class="flag">no</span>',
+                                 "yes" if c["independent_of_inputs"] else '<span class="flag">no</span>'])
+    if val_rows:
+        parts += ["<h3>Validation on data not used for estimation</h3>",
+                  "<p>fit % = 100 (1 − ‖z − y‖/‖z − mean z‖); residual whiteness by Ljung-Box (25 lags) and "
+                  "input cross-correlation (Bonferroni over lags and inputs), both at 1 %.</p>",
+                  _table(["method", "channel", "fit %", "NRMSE", "Ljung-Box p", "white", "indep. of inputs"],
+                         val_rows, name_cols=2)]
+    return "\n".join(parts), fits
+
+
+def _provenance_section(study: dict, study_path: Path, results: Path, fits: dict) -> str:
+    from .. import __version__
+
+    rows = [["package version", __version__], ["study file", html.escape(str(study_path.name))],
+            ["study hash", settings_hash(study)], ["seed", study.get("seed")]]
+    for f in sorted(results.rglob("*")):
+        if f.is_file() and f.suffix in (".nc", ".csv", ".mat") and "logs" not in f.parts:
+            rows.append([f"sha256 {html.escape(str(f.relative_to(results)))}", file_sha256(f)[:32] + "…"])
+    for k, fit in fits.items():
+        rows.append([f"{k} fit created", html.escape(str(fit.get("provenance", {}).get("created", "")))])
+    return _table(["item", "value"], [[html.escape(str(a)), str(b)] for a, b in rows])
+
+
+def build_report(study: dict, study_path: str | Path, results: str | Path) -> str:
+    """HTML text of the report for ``study`` from the result files in ``results``."""
+    results, study_path = Path(results), Path(study_path)
+    ident, fits = _identification_section(study, results)
+    sections = [("identification", "Maximum-likelihood identification", ident)]
+    stages = {"posterior": "Bayesian posterior", "sensitivity": "Sobol sensitivity",
+              "identifiability": "Identifiability", "gap": "Sim-to-real gap"}
+    pending = [title for key, title in stages.items() if not any(results.glob(f"{key}*"))]
+    if pending:
+        sections.append(("pending", "Stages not run", "<p class=\"muted\">" + ", ".join(pending) + "</p>"))
+    sections.append(("provenance", "Provenance", _provenance_section(study, study_path, results, fits)))
+    body = "\n".join(f'<h2 id="{key}">{title}</h2>\n{content}' for key, title, content in sections)
+    nav = " ".join(f'<a href="#{key}">{title}</a>' for key, title, _ in sections)
+    template = Template(resources.files("ema_uq").joinpath(TEMPLATE).read_text())
+    model = get_model(study["concept"])
+    return template.substitute(title=html.escape(f"{study['name']} — {model.title}"),
+                               description=html.escape(study.get("description", "")),
+                               nav=nav, sections=body)

@@ -1,0 +1,347 @@
+"""The two concept models against MODEL_SPEC.md, and the compiled simulator against an
+independent scipy reference (tests/reference_scipy.py).
+
+Expected values of the hand-computed states are written out from the spec formulas and the
+spec's nominal tables, not read from the package. Relative errors of trajectories are per
+channel: max |difference| over the run divided by max |value| of that channel.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from ema_uq import deploy_retract, get_model, simulate_batch
+from ema_uq.models import htls, lths
+from reference_scipy import OUTPUTS, RHS, reference_simulate
+
+DEG = math.pi / 180.0
+EPS = 0.05  # rad/s, nominal omega_eps
+
+#: Accuracy targets of the lead's brief (relative, per channel, whole deploy-retract run).
+STEP_HALVING_TOL = 1e-6
+REFERENCE_TOL = 1e-5
+
+# --- MODEL_SPEC nominal tables, typed in from the spec ---------------------------------
+STATION_LOSSES = {"B_TS1": 0.40, "C_TS1": 1.20, "B_U1": 0.10, "C_U1": 0.30,
+                  "B_TS2": 0.44, "C_TS2": 1.35, "B_U2": 0.09, "C_U2": 0.33}
+SPEC_HTLS = {"J": 0.05, "k_n": 1.2, "B_TP1": 0.20, "C_TP1": 0.60, "B_TP2": 0.22, "C_TP2": 0.55,
+             "p_ACE": 2000.0, "p_PCE": 10.0, **STATION_LOSSES}
+SPEC_LTHS = {"J": 4e-4, "k_n": 0.08, "B_TP1": 0.05, "C_TP1": 0.30, "B_TP2": 0.11, "C_TP2": 0.28,
+             "B_MG": 0.01, "C_MG": 0.40, "R_A": 0.3, "L_A": 1e-3, "k_s": 0.08,
+             "p_ACE": 35000.0, "p_PCE": 0.08, **STATION_LOSSES}
+COMMON_CONSTANTS = {"r": 0.016, "gamma": 4 * DEG, "beta1": 3 * DEG, "beta2": 5 * DEG,
+                    "k_y": 0.3 / (40 * DEG), "M_Bmax": 100.0, "K_b": 1.0, "Omega_half": 1.0,
+                    "omega_eps": EPS}
+SPEC_HTLS_CONSTANTS = {"i_TP1": 2.0, "i_TP2": 2.0, "M_min": -80.0, "M_max": 80.0, **COMMON_CONSTANTS}
+SPEC_LTHS_CONSTANTS = {"i_MG": 20.0, "i_BG1": 2.0, "i_BG2": 1.0, "i_TP2": 2.0, "U_max": 135.0,
+                       "D_IS": 0.0, **COMMON_CONSTANTS}
+
+K_Y = 0.3 / (40 * DEG)
+SG, CG, TG = math.sin(4 * DEG), math.cos(4 * DEG), math.tan(4 * DEG)
+CB1, CB2 = math.cos(3 * DEG), math.cos(5 * DEG)
+LEAD = 0.016 * TG  # m/rad, carriage travel per screw radian (eq. 12)
+
+
+def s(v):
+    return math.tanh(v / EPS)
+
+
+def brake_magnitude(v):
+    """Eq. 3 with M_Bmax = 100 N m, K_b = 1, Omega_half = 1 rad/s."""
+    return 100.0 - 0.5 * 100.0 * (1.0 - math.exp(-abs(v) / 1.0))
+
+
+def evaluate(concept, x, u, constants=None):
+    """Call the package's compiled right-hand side at nominal parameters: (dx, outputs by name)."""
+    model = get_model(concept)
+    module = htls if concept == "htls" else lths
+    dx = np.full(model.n_states, np.nan)
+    y = np.full(model.n_outputs, np.nan)
+    c = model.constants_vector(constants)
+    module.evaluate(np.asarray(x, float), np.asarray(u, float), model.parameters.nominal, c, dx, y)
+    assert np.all(np.isfinite(dx)) and np.all(np.isfinite(y)), "evaluate left entries unset"
+    return dx, dict(zip(model.outputs, y))
+
+
+def check(actual: dict, expected: dict, rtol=1e-12, atol=1e-12):
+    for name, value in expected.items():
+        assert actual[name] == pytest.approx(value, rel=rtol, abs=atol), name
+
+
+def rel_error(a, b):
+    """(n_outputs,) max |a - b| per channel over max |b| per channel."""
+    return np.abs(a - b).max(axis=0) / np.abs(b).max(axis=0)
+
+
+# --- layouts and nominal values -------------------------------------------------------
+@pytest.mark.parametrize("concept, params, consts", [("htls", SPEC_HTLS, SPEC_HTLS_CONSTANTS),
+                                                     ("lths", SPEC_LTHS, SPEC_LTHS_CONSTANTS)])
+def test_nominal_values_and_layout_match_spec(concept, params, consts):
+    model = get_model(concept)
+    assert model.outputs == OUTPUTS[concept]
+    assert set(model.parameters.names) == set(params)
+    assert len(model.parameters) == (16 if concept == "htls" else 21)
+    for name, value in params.items():
+        assert model.parameters[name].nominal == pytest.approx(value, rel=1e-15), name
+    assert set(model.constants.names) == set(consts)
+    for name, value in consts.items():
+        assert model.constants[name].nominal == pytest.approx(value, rel=1e-15, abs=0), name
+
+
+# --- HT/LS at hand-computed states ------------------------------------------------------
+def htls_expected(omega, y1, y2, phi_r, f1, f2, m_n):
+    """Every HT/LS output and derivative from eqs. 4-15, 36 for a given motor torque m_n."""
+    w = omega / 2.0  # Omega_TP = Omega_U, i_TP = 2, g_U = 1
+    m_er1, m_er2 = -0.016 * f1 * SG * CG, -0.016 * f2 * SG * CG
+    m_tser1 = 0.40 * w + 1.20 * s(w) + m_er1
+    m_tser2 = 0.44 * w + 1.35 * s(w) + m_er2
+    m_uer1 = m_tser1 / CB1 + 0.10 * w + 0.30 * s(w)
+    m_uer2 = m_tser2 / CB2 + 0.09 * w + 0.33 * s(w)
+    m_tper1 = m_uer1 / 2.0 + 0.20 * w + 0.60 * s(w)
+    m_tper2 = m_uer2 / 2.0 + 0.22 * w + 0.55 * s(w)
+    outputs = {"Omega": omega, "y1": y1, "y2": y2, "I_A": m_n / 1.2,
+               "Omega_TP1": w, "Omega_TP2": w, "Omega_U1": w, "Omega_U2": w,
+               "M_ER1": m_er1, "M_ER2": m_er2, "M_TSER1": m_tser1, "M_TSER2": m_tser2,
+               "M_UER1": m_uer1, "M_UER2": m_uer2, "M_TPER1": m_tper1, "M_TPER2": m_tper2}
+    dx = [(m_n - m_tper1 - m_tper2) / 0.05, LEAD * w, LEAD * w, omega]
+    return dx, outputs
+
+
+def htls_command(omega, y1, y2, phi_r):
+    """Unclipped motor torque p_PCE (p_ACE (k_y phi_r - y_s) - Omega) [N m] (eqs. 32-35)."""
+    return 10.0 * (2000.0 * (K_Y * phi_r - 0.5 * (y1 + y2)) - omega)
+
+
+@pytest.mark.parametrize("phi_r, regime", [(0.045, "linear"), (0.06, "upper limit"), (-0.05, "lower limit")])
+def test_htls_relations_at_hand_computed_state(phi_r, regime):
+    omega, y1, y2, theta, f1, f2 = 12.3, 0.01, 0.012, 0.7, -8000.0, -6500.0
+    command = htls_command(omega, y1, y2, phi_r)
+    m_n = {"linear": command, "upper limit": 80.0, "lower limit": -80.0}[regime]
+    if regime == "linear":
+        assert abs(command) < 80.0
+    else:
+        assert abs(command) > 80.0 and math.copysign(1, command) == math.copysign(1, m_n)
+    dx, y = evaluate("htls", [omega, y1, y2, theta], [phi_r, f1, f2, 0.0])
+    dx_exp, y_exp = htls_expected(omega, y1, y2, phi_r, f1, f2, m_n)
+    check(y, y_exp)
+    np.testing.assert_allclose(dx, dx_exp, rtol=1e-12, atol=1e-12)
+
+
+def test_htls_theta_feeds_nothing():
+    u = [0.045, -8000.0, -6500.0, 0.0]
+    dx_a, y_a = evaluate("htls", [12.3, 0.01, 0.012, 0.7], u)
+    dx_b, y_b = evaluate("htls", [12.3, 0.01, 0.012, 123.4], u)
+    assert np.array_equal(dx_a, dx_b) and y_a == y_b
+    assert dx_a[3] == 12.3
+
+
+@pytest.mark.parametrize("concept", ["htls", "lths"])
+def test_eq13_sign_convention(concept):
+    """F_ER < 0 (load opposing extension) gives M_ER > 0, which decelerates an extending motor."""
+    x = [12.3, 0.01, 0.012, 0.0] if concept == "htls" else [5.0, 300.0, 0.01, 0.012, 0.0]
+    i_omega = 0 if concept == "htls" else 1
+    dx_0, y_0 = evaluate(concept, x, [0.045, 0.0, 0.0, 0.0])
+    dx_load, y_load = evaluate(concept, x, [0.045, -8000.0, -6500.0, 0.0])
+    dx_aid, y_aid = evaluate(concept, x, [0.045, 8000.0, 6500.0, 0.0])
+    assert y_0["M_ER1"] == 0.0 and y_0["M_ER2"] == 0.0
+    assert y_load["M_ER1"] == pytest.approx(0.016 * 8000.0 * SG * CG, rel=1e-14) and y_load["M_ER1"] > 0
+    assert y_aid["M_ER2"] == pytest.approx(-0.016 * 6500.0 * SG * CG, rel=1e-14)
+    assert dx_load[i_omega] < dx_0[i_omega] < dx_aid[i_omega]
+
+
+@pytest.mark.parametrize("omega", [12.3, 0.7, -0.7])
+@pytest.mark.parametrize("b", [1.0, 0.5])
+def test_htls_brake(omega, b):
+    """Eq. 3 brakes act against motion, scaled by the brake input: M_B1 on the motor shaft,
+    M_B2k inside M_TPERk at the bevel-gear output speed Omega_TPk (where the spec adds them)."""
+    x, u = [omega, 0.01, 0.012, 0.0], [0.045, -8000.0, -6500.0, 0.0]
+    dx_0, y_0 = evaluate("htls", x, u)
+    dx_b, y_b = evaluate("htls", x, u[:3] + [b])
+    w = omega / 2.0
+    m_b2 = b * brake_magnitude(w) * s(w)
+    m_b1 = b * brake_magnitude(omega) * s(omega)
+    assert math.copysign(1, m_b1) == math.copysign(1, omega)  # against motion
+    assert y_b["M_TPER1"] - y_0["M_TPER1"] == pytest.approx(m_b2, rel=1e-12)
+    assert y_b["M_TPER2"] - y_0["M_TPER2"] == pytest.approx(m_b2, rel=1e-12)
+    assert dx_b[0] - dx_0[0] == pytest.approx(-(m_b1 + 2 * m_b2) / 0.05, rel=1e-10)
+    untouched = [k for k in y_0 if k not in ("M_TPER1", "M_TPER2")]
+    assert all(y_b[k] == y_0[k] for k in untouched)
+    assert np.array_equal(dx_b[1:], dx_0[1:])
+
+
+# --- LT/HS at hand-computed states ------------------------------------------------------
+def lths_expected(i_a, omega, y1, y2, theta, f1, f2, u_a, d_is=0.0):
+    """Every LT/HS output and derivative from eqs. 16-31, 39 for a given armature voltage."""
+    w_mg = omega / 20.0
+    w_tp1 = w_mg / 2.0
+    w_mg2 = w_mg / 1.0
+    w_tp2 = w_mg2 / 2.0
+    m_er1, m_er2 = -0.016 * f1 * SG * CG, -0.016 * f2 * SG * CG
+    m_tser1 = 0.40 * w_tp1 + 1.20 * s(w_tp1) + m_er1
+    m_tser2 = 0.44 * w_tp2 + 1.35 * s(w_tp2) + m_er2
+    m_uer1 = m_tser1 / CB1 + 0.10 * w_tp1 + 0.30 * s(w_tp1)
+    m_uer2 = m_tser2 / CB2 + 0.09 * w_tp2 + 0.33 * s(w_tp2)
+    m_mg2 = m_uer2 / 2.0 + 0.11 * w_tp2 + 0.28 * s(w_tp2)
+    m_tper = m_uer1 / 2.0 + m_mg2 / 1.0 + 0.05 * w_tp1 + 0.30 * s(w_tp1)
+    m_iser = m_tper + d_is * theta / 20.0  # eq. 22 with theta_MG = theta / i_MG
+    m_mger = m_iser / 20.0 + 0.01 * w_mg + 0.40 * s(w_mg)
+    outputs = {"Omega": omega, "y1": y1, "y2": y2, "I_A": i_a, "U_A": u_a,
+               "Omega_MG": w_mg, "Omega_TP1": w_tp1, "Omega_MG2": w_mg2, "Omega_TP2": w_tp2,
+               "Omega_U1": w_tp1, "Omega_U2": w_tp2, "M_ER1": m_er1, "M_ER2": m_er2,
+               "M_TSER1": m_tser1, "M_TSER2": m_tser2, "M_UER1": m_uer1, "M_UER2": m_uer2,
+               "M_MG2": m_mg2, "M_TPER": m_tper, "M_MGER": m_mger}
+    dx = [(-0.3 * i_a - 0.08 * omega + u_a) / 1e-3, (0.08 * i_a - m_mger) / 4e-4,
+          LEAD * w_tp1, LEAD * w_tp2, omega]
+    return dx, outputs
+
+
+@pytest.mark.parametrize("y_r, regime", [(0.020, "linear"), (0.030, "upper limit"), (0.0, "lower limit")])
+def test_lths_relations_at_hand_computed_state(y_r, regime):
+    i_a, omega, y1, y2, theta, f1, f2 = 5.0, 300.0, 0.01, 0.012, 3.0, -8000.0, -6500.0
+    phi_r = y_r / K_Y
+    command = (0.08 / 0.08) * (35000.0 * (y_r - 0.011) - omega)  # eq. 41 before clipping
+    u_a = {"linear": command, "upper limit": 135.0, "lower limit": -135.0}[regime]
+    if regime == "linear":
+        assert command == pytest.approx(15.0) and abs(command) < 135.0
+    else:
+        assert abs(command) > 135.0 and math.copysign(1, command) == math.copysign(1, u_a)
+    dx, y = evaluate("lths", [i_a, omega, y1, y2, theta], [phi_r, f1, f2, 0.0])
+    dx_exp, y_exp = lths_expected(i_a, omega, y1, y2, theta, f1, f2, u_a)
+    check(y, y_exp)
+    np.testing.assert_allclose(dx, dx_exp, rtol=1e-12, atol=1e-9)
+
+
+def test_lths_shaft_stiffness_uses_angle():
+    """Ambiguity 6: D_IS multiplies theta_MG = theta / i_MG (zero nominal, so theta feeds nothing)."""
+    x, u = [5.0, 300.0, 0.01, 0.012, 3.0], [0.020 / K_Y, -8000.0, -6500.0, 0.0]
+    dx_0, y_0 = evaluate("lths", x, u)
+    dx_far, y_far = evaluate("lths", x[:4] + [-50.0], u)
+    assert np.array_equal(dx_0[:4], dx_far[:4]) and y_0 == y_far
+    dx_d, y_d = evaluate("lths", x, u, constants={"D_IS": 2.5})
+    dx_exp, y_exp = lths_expected(*x, -8000.0, -6500.0, 15.0, d_is=2.5)
+    check(y_d, y_exp)
+    np.testing.assert_allclose(dx_d, dx_exp, rtol=1e-12, atol=1e-9)
+    assert y_d["M_MGER"] - y_0["M_MGER"] == pytest.approx(2.5 * 3.0 / 20.0 / 20.0, rel=1e-9)
+
+
+@pytest.mark.parametrize("omega", [300.0, 14.0, -14.0])
+def test_lths_brake(omega):
+    """Brakes M_B2 (in M_TPER, at Omega_TP1) and M_B22 (in M_MG2, at Omega_TP2); eq. 18 has
+    no motor brake. They act against motion and scale with the brake input."""
+    x, u = [5.0, omega, 0.01, 0.012, 0.0], [0.020 / K_Y, -8000.0, -6500.0, 0.0]
+    dx_0, y_0 = evaluate("lths", x, u)
+    dx_b, y_b = evaluate("lths", x, u[:3] + [0.5])
+    w_tp1 = w_tp2 = omega / 40.0
+    m_b22 = 0.5 * brake_magnitude(w_tp2) * s(w_tp2)
+    m_b2 = 0.5 * brake_magnitude(w_tp1) * s(w_tp1)
+    assert math.copysign(1, m_b2) == math.copysign(1, omega)
+    assert y_b["M_MG2"] - y_0["M_MG2"] == pytest.approx(m_b22, rel=1e-12)
+    assert y_b["M_TPER"] - y_0["M_TPER"] == pytest.approx(m_b2 + m_b22, rel=1e-12)
+    assert y_b["M_MGER"] - y_0["M_MGER"] == pytest.approx((m_b2 + m_b22) / 20.0, rel=1e-10)
+    assert dx_b[1] - dx_0[1] == pytest.approx(-(m_b2 + m_b22) / 20.0 / 4e-4, rel=1e-9)
+    assert dx_b[0] == dx_0[0]
+
+
+@pytest.mark.parametrize("concept", ["htls", "lths"])
+def test_rhs_matches_reference_at_random_states(concept):
+    """Package right-hand side vs reference_scipy at random states, brake inputs and D_IS."""
+    model = get_model(concept)
+    module = htls if concept == "htls" else lths
+    rng = np.random.default_rng(7)
+    scale = [30.0, 0.1, 0.1, 50.0] if concept == "htls" else [20.0, 900.0, 0.1, 0.1, 50.0]
+    th, c = model.parameters.nominal, model.constants.nominal
+    th_d, c_d = model.parameters.as_dict(th), model.constants.as_dict(c)
+    if concept == "lths":
+        c_d["D_IS"] = 1.7
+        c = model.constants_vector({"D_IS": 1.7})
+    dx, y = np.empty(model.n_states), np.empty(model.n_outputs)
+    for _ in range(200):
+        x = rng.normal(size=model.n_states) * scale
+        u = [rng.uniform(-0.1, 0.7), rng.uniform(-3e4, 1e4), rng.uniform(-3e4, 1e4), rng.choice([0.0, 0.3, 1.0])]
+        module.evaluate(x, np.array(u), th, c, dx, y)
+        dx_ref, y_ref = RHS[concept](x, u, th_d, c_d)
+        np.testing.assert_allclose(dx, dx_ref, rtol=1e-12, atol=1e-12 * np.abs(dx_ref).max())
+        np.testing.assert_allclose(y, y_ref, rtol=1e-12, atol=1e-12 * np.abs(y_ref).max())
+
+
+# --- trajectories -----------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def experiment():
+    return deploy_retract()
+
+
+@pytest.fixture(scope="module")
+def nominal_runs(experiment):
+    """Nominal deploy-retract outputs at the default step, per concept: (n_samples, n_outputs)."""
+    return {c: simulate_batch(c, get_model(c).parameters.nominal, experiment.time,
+                              experiment.input_matrix()) for c in ("htls", "lths")}
+
+
+@pytest.mark.parametrize("concept", ["htls", "lths"])
+def test_batch_equals_single_bit_for_bit(concept, experiment):
+    model = get_model(concept)
+    rng = np.random.default_rng(11)
+    thetas = model.parameters.nominal * rng.uniform(0.8, 1.2, size=(5, len(model.parameters)))
+    inputs = experiment.input_matrix()
+    batch = simulate_batch(model, thetas, experiment.time, inputs)
+    assert batch.shape == (5, experiment.n_samples, model.n_outputs)
+    for i in range(5):
+        assert np.array_equal(batch[i], simulate_batch(model, thetas[i], experiment.time, inputs)), i
+    assert not np.array_equal(batch[0], batch[1])  # the sets really differ
+
+
+@pytest.mark.parametrize("concept", ["htls", "lths"])
+def test_halving_the_step_changes_little(concept, experiment, nominal_runs):
+    model = get_model(concept)
+    half = simulate_batch(model, model.parameters.nominal, experiment.time, experiment.input_matrix(),
+                          step=model.integration_step / 2)
+    err = rel_error(nominal_runs[concept], half)
+    worst = int(np.argmax(err))
+    assert err.max() < STEP_HALVING_TOL, (
+        f"{concept}: halving the step {model.integration_step:g} s changes {model.outputs[worst]} "
+        f"by {err.max():.2e} (relative), tolerance {STEP_HALVING_TOL:g}")
+
+
+@pytest.mark.parametrize("concept", ["htls", "lths"])
+def test_simulator_matches_scipy_reference(concept, experiment, nominal_runs):
+    """Full deploy-retract run against DOP853 (rtol 1e-10) of the independent reference."""
+    model = get_model(concept)
+    ref = reference_simulate(concept, model.parameters.as_dict(model.parameters.nominal),
+                             model.constants.as_dict(model.constants.nominal),
+                             experiment.time, experiment.input_matrix())
+    err = rel_error(nominal_runs[concept], ref)
+    worst = int(np.argmax(err))
+    assert err.max() < REFERENCE_TOL, (
+        f"{concept}: {model.outputs[worst]} differs from the scipy reference by {err.max():.2e} "
+        f"(relative), tolerance {REFERENCE_TOL:g}")
+
+
+@pytest.mark.parametrize("concept, peak_extend, peak_retract",
+                         [("htls", 33.0, -47.0), ("lths", 670.0, -935.0)])
+def test_reference_figures(concept, peak_extend, peak_retract, experiment, nominal_runs):
+    out = nominal_runs[concept]
+    omega = out[:, 0]
+    assert omega.max() == pytest.approx(peak_extend, rel=0.03)
+    assert omega.min() == pytest.approx(peak_retract, rel=0.03)
+    lag = K_Y * experiment.inputs["phi_r"] - 0.5 * (out[:, 1] + out[:, 2])
+    ramp = (experiment.time >= 5.0) & (experiment.time < 9.0)  # steady part of the first deploy
+    assert np.all((lag[ramp] > 0.015) & (lag[ramp] < 0.03)), (lag[ramp].min(), lag[ramp].max())
+
+
+@pytest.mark.parametrize("concept", ["htls", "lths"])
+def test_results_converge_as_omega_eps_shrinks(concept, experiment):
+    """Changes between eps, eps/2, eps/4 must shrink (RMS over the run, worst channel)."""
+    model = get_model(concept)
+    runs = []
+    for eps, step in ((0.05, None), (0.025, None), (0.0125, model.integration_step / 2)):
+        consts = model.constants_vector({"omega_eps": eps})
+        runs.append(simulate_batch(model, model.parameters.nominal, experiment.time,
+                                   experiment.input_matrix(), constants=consts, step=step))
+    rms = np.sqrt(np.mean(runs[0] ** 2, axis=0))
+    first = (np.sqrt(np.mean((runs[0] - runs[1]) ** 2, axis=0)) / rms).max()
+    second = (np.sqrt(np.mean((runs[1] - runs[2]) ** 2, axis=0)) / rms).max()
+    assert first < 0.01  # omega_eps = 0.05 is already close to the limit
+    assert second < 0.9 * first, (first, second)
+    assert rel_error(runs[1], runs[2]).max() < rel_error(runs[0], runs[1]).max()
