@@ -4,6 +4,8 @@
 # `snakemake --lint` asks for a conda environment per rule: the software is the package
 # itself, installed once by `pip install -e .` (pyproject.toml pins its dependencies), so
 # every rule shares that one environment and none is declared.
+from importlib import resources
+
 from snakemake.utils import validate
 
 from ema_uq.study import load_study
@@ -14,7 +16,7 @@ configfile: "config/config.yaml"
 validate(config, "config/config.schema.yaml")
 
 STUDIES = {name: load_study(f"studies/{name}.yaml") for name in config["studies"]}
-REPORT_TEMPLATE = "ema_uq/report/templates/report.html"
+REPORT_TEMPLATE = str(resources.files("ema_uq").joinpath("report/templates/report.html"))
 
 
 def study(wildcards):
