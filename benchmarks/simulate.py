@@ -1,0 +1,158 @@
+"""Forward-simulation speed: scipy peer vs the numba simulator, side by side.
+
+For each concept, full deploy-retract runs (38 s, 3800 samples) per second of wall time:
+
+  (a) peer   : Python rhs under scipy ``solve_ivp`` (RK45, rtol 1e-6, atol 1e-9), one held
+               sample interval at a time (tests/reference_scipy.py, ``peer_simulate``);
+  (b) single : ``simulate_batch`` called once per parameter set, in a loop;
+  (c) batch  : one ``simulate_batch`` call on 256 sets, on all numba threads.
+
+Also: accuracy of (a) and (b) against the DOP853 rtol 1e-10 reference (so the peer is
+compared at equal accuracy), and numba compile time measured in fresh subprocesses with an
+empty cache directory (first process compiles, second reuses the cache).
+
+Usage: python benchmarks/simulate.py [--quick]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+
+import numba
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.join(HERE, os.pardir, "tests"))
+
+from ema_uq import deploy_retract, get_model, simulate_batch  # noqa: E402
+from reference_scipy import PEER_SETTINGS, peer_simulate, reference_simulate  # noqa: E402
+
+TARGET_SINGLE_OVER_PEER = {"htls": 250.0}
+TARGET_BATCH_OVER_SINGLE = 1.7
+N_BATCH = 256
+
+_FIRST_CALL = r"""
+import json, time
+t0 = time.perf_counter()
+from ema_uq import deploy_retract, get_model, simulate_batch
+t1 = time.perf_counter()
+ex = deploy_retract()
+m = get_model("htls")
+simulate_batch(m, m.parameters.nominal, ex.time, ex.input_matrix())
+t2 = time.perf_counter()
+m = get_model("lths")
+simulate_batch(m, m.parameters.nominal, ex.time, ex.input_matrix())
+t3 = time.perf_counter()
+simulate_batch(m, m.parameters.nominal, ex.time, ex.input_matrix())
+t4 = time.perf_counter()
+print(json.dumps({"import": t1 - t0, "first_htls": t2 - t1, "first_lths": t3 - t2, "warm_lths": t4 - t3}))
+"""
+
+
+def best_rate(fn, runs_per_call: int, repeats: int) -> float:
+    """Best-of-``repeats`` throughput [runs/s] of ``fn`` doing ``runs_per_call`` runs."""
+    best = np.inf
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t)
+    return runs_per_call / best
+
+
+def parameter_sets(model, n: int, seed: int = 0) -> np.ndarray:
+    """(n, n_params) nominal values scaled by U(0.8, 1.2), so each run differs."""
+    rng = np.random.default_rng(seed)
+    return model.parameters.nominal * rng.uniform(0.8, 1.2, size=(n, len(model.parameters)))
+
+
+def bench_concept(concept: str, n_peer: int, n_single: int, repeats: int, accuracy: bool) -> dict:
+    model = get_model(concept)
+    ex = deploy_retract()
+    time_, inputs = ex.time, ex.input_matrix()
+    thetas = parameter_sets(model, N_BATCH)
+    consts = model.constants.as_dict(model.constants.nominal)
+    as_dict = model.parameters.as_dict
+
+    simulate_batch(model, thetas[:2], time_, inputs)  # load the compiled kernel before timing
+    peer = best_rate(lambda: [peer_simulate(concept, as_dict(thetas[i]), consts, time_, inputs)
+                              for i in range(n_peer)], n_peer, 1)
+    single = best_rate(lambda: [simulate_batch(model, thetas[i], time_, inputs) for i in range(n_single)],
+                       n_single, repeats)
+    batch = best_rate(lambda: simulate_batch(model, thetas, time_, inputs), N_BATCH, repeats)
+    row = {"concept": concept, "peer": peer, "single": single, "batch": batch,
+           "step": model.integration_step}
+    if accuracy:
+        theta, const_vec = model.parameters.nominal, model.constants.nominal
+        ref = reference_simulate(concept, as_dict(theta), consts, time_, inputs)
+        scale = np.abs(ref).max(axis=0)
+        err = lambda out: float((np.abs(out - ref).max(axis=0) / scale).max())  # noqa: E731
+        row["err_peer"] = err(peer_simulate(concept, as_dict(theta), consts, time_, inputs))
+        row["err_numba"] = err(simulate_batch(model, theta, time_, inputs, constants=const_vec))
+    return row
+
+
+def compile_times() -> list[dict]:
+    """Two fresh interpreters sharing one empty NUMBA_CACHE_DIR: compile, then cache reuse."""
+    with tempfile.TemporaryDirectory(prefix="numba-cache-") as cache:
+        env = dict(os.environ, NUMBA_CACHE_DIR=cache)
+        rows = []
+        for label in ("fresh cache (compiles)", "second process (cache)"):
+            t = time.perf_counter()
+            res = subprocess.run([sys.executable, "-c", _FIRST_CALL], env=env, check=True,
+                                 capture_output=True, text=True)
+            row = json.loads(res.stdout.strip().splitlines()[-1])
+            row["process"] = time.perf_counter() - t
+            row["label"] = label
+            rows.append(row)
+    return rows
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="fewer repeats, no accuracy check")
+    args = ap.parse_args(argv)
+    n_peer, n_single, repeats = (1, 5, 1) if args.quick else (3, 20, 3)
+    threads = numba.get_num_threads()
+
+    print(f"ema_uq forward simulation, deploy-retract (3800 samples, 38 s); numba {numba.__version__}, "
+          f"{threads} numba threads, {os.cpu_count()} CPUs")
+    print(f"peer: scipy solve_ivp {PEER_SETTINGS}, Python rhs, per held sample interval")
+    # other work on the machine distorts every figure below; the load average shows it
+    print("load average at start (1, 5, 15 min): %.2f %.2f %.2f\n" % os.getloadavg())
+    rows = [bench_concept(c, n_peer, n_single, repeats, not args.quick) for c in ("htls", "lths")]
+
+    head = (f"{'concept':<8}{'peer run/s':>12}{'single run/s':>14}{f'batch{N_BATCH} run/s':>16}"
+            f"{'single/peer':>13}{'target':>9}{'batch/single':>14}{'target':>9}")
+    print(head)
+    print("-" * len(head))
+    for r in rows:
+        s_p = r["single"] / r["peer"]
+        b_s = r["batch"] / r["single"]
+        t_sp = TARGET_SINGLE_OVER_PEER.get(r["concept"])
+        t_sp_txt = f">={t_sp:g}" if t_sp else "-"
+        mark_sp = "" if t_sp is None else (" ok" if s_p >= t_sp else " MISS")
+        mark_bs = " ok" if b_s >= TARGET_BATCH_OVER_SINGLE else " MISS"
+        print(f"{r['concept']:<8}{r['peer']:>12.3g}{r['single']:>14.4g}{r['batch']:>16.4g}"
+              f"{s_p:>10.1f}x{mark_sp:<3}{t_sp_txt:>8}{b_s:>11.2f}x{mark_bs:<3}{'>=' + str(TARGET_BATCH_OVER_SINGLE):>8}")
+    print(f"\nper run [ms]: " + "; ".join(
+        f"{r['concept']} peer {1e3 / r['peer']:.0f}, single {1e3 / r['single']:.2f}, "
+        f"batch {1e3 / r['batch']:.2f} (RK4 step {r['step'] * 1e3:g} ms)" for r in rows))
+    if not args.quick:
+        print("accuracy vs DOP853 rtol 1e-10 reference (max over channels of max|err|/max|ref|): " + "; ".join(
+            f"{r['concept']} peer {r['err_peer']:.1e}, numba {r['err_numba']:.1e}" for r in rows))
+
+    print("\nnumba compile time (fresh interpreters, empty NUMBA_CACHE_DIR) [s]:")
+    for c in compile_times():
+        print(f"  {c['label']:<24} import {c['import']:.2f}  first htls call {c['first_htls']:.2f}  "
+              f"first lths call {c['first_lths']:.3f}  warm lths call {c['warm_lths']:.3f}  "
+              f"whole process {c['process']:.2f}")
+    print("load average at end (1, 5, 15 min): %.2f %.2f %.2f" % os.getloadavg())
+
+
+if __name__ == "__main__":
+    main()
