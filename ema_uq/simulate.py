@@ -20,7 +20,7 @@ class SimulationError(ValueError):
     """Inputs or parameter arrays of the wrong shape, or a non-finite trajectory."""
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _evaluate(model_id, x, u, th, c, dx, y):
     if model_id == 0:
         htls.evaluate(x, u, th, c, dx, y)
@@ -28,7 +28,7 @@ def _evaluate(model_id, x, u, th, c, dx, y):
         lths.evaluate(x, u, th, c, dx, y)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _integrate_one(model_id, th, consts, inputs, x0, h, n_sub, out):
     """Integrate one parameter vector; writes outputs (n_samples, n_outputs) into ``out``."""
     n_x = x0.shape[0]
@@ -63,7 +63,7 @@ def _integrate_one(model_id, th, consts, inputs, x0, h, n_sub, out):
                 x[i] += h / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, error_model="numpy")
 def _integrate_batch(model_id, thetas, consts, inputs, x0, h, n_sub, out):
     """Kernel entry: thetas (n_sets, n_params) -> out (n_sets, n_samples, n_outputs)."""
     for s in prange(thetas.shape[0]):
@@ -131,7 +131,7 @@ def simulate_batch(
         raise SimulationError(f"constants have shape {consts.shape}; expected ({len(model.constants)},)")
     x0 = np.zeros(model.n_states) if x0 is None else np.ascontiguousarray(x0, dtype=np.float64)
     out = np.empty((thetas.shape[0], time.size, model.n_outputs))
-    _integrate_batch(model.model_id, thetas, consts, inputs, x0, h, n_sub, out)
+    _integrate_batch(model.model_id, thetas, model.kernel_constants(consts), inputs, x0, h, n_sub, out)
     return out[0] if single else out
 
 

@@ -52,21 +52,28 @@ def _evaluate(problem: FitProblem, thetas: np.ndarray, counter: _Counter) -> lis
     return [_State(problem, thetas[i], residuals[i]) for i in range(thetas.shape[0])]
 
 
-def _information(problem: FitProblem, state: _State, scale: np.ndarray, counter: _Counter):
+def _information(problem: FitProblem, state: _State, scale: np.ndarray, counter: _Counter, central: bool = True):
     """Scaled information matrix F and gradient G of V at ``state`` (R held fixed).
 
-    Output sensitivities by central differences: all 2p perturbed vectors in ONE batch.
+    Output sensitivities by finite differences, all perturbed vectors in ONE batched call:
+    forward (p runs, enough to steer the iterations) or central (2p runs, for the
+    Cramér-Rao bound at the estimate).
     """
     p = scale.size
     h = FD_RELATIVE_STEP * scale
-    steps = np.zeros((2 * p, p))
+    steps = np.zeros((2 * p if central else p, p))
     steps[:p][np.diag_indices(p)] = h
-    steps[p:][np.diag_indices(p)] = -h
+    if central:
+        steps[p:][np.diag_indices(p)] = -h
     thetas = problem.full_vectors(state.free[None, :] + steps, state.theta)
     predicted = problem.predict(thetas)
     counter.n += thetas.shape[0]
     # S[k, c, j] = d y_kc / d s_j in scaled coordinates
-    sens = (predicted[:p] - predicted[p:]).transpose(1, 2, 0) / (2.0 * h) * scale
+    if central:
+        sens = (predicted[:p] - predicted[p:]).transpose(1, 2, 0) / (2.0 * h) * scale
+    else:
+        base = problem.observed - state.residuals
+        sens = (predicted - base[None]).transpose(1, 2, 0) / h * scale
     r_inv = np.linalg.inv(covariance(state.residuals))
     weighted = np.einsum("kcj,cd->kdj", sens, r_inv)
     info = np.einsum("kdj,kdl->jl", weighted, sens)
@@ -198,7 +205,7 @@ def estimate(
     stepper = _gn_step if method == "gn" else _LevenbergMarquardt(settings).step
     converged, message, iteration = False, "maximum number of iterations reached", 0
     for iteration in range(1, settings.max_iterations + 1):
-        info, grad, sens = _information(problem, state, scale, counter)
+        info, grad, sens = _information(problem, state, scale, counter, central=False)
         if iteration == 1:
             _check_information(problem, info, sens)
         new, extra = stepper(problem, state, info, grad, scale, settings, counter)

@@ -7,6 +7,7 @@ only carries names, units, layouts and defaults so that numerics stay array-base
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -32,6 +33,7 @@ class Model:
     parameters : the estimated parameters Θ (their nominal values are the defaults).
     constants : design constants and model settings (all fixed), in kernel order.
     integration_step : fixed RK4 step [s] known to be converged below the noise level.
+    derive : constants computed once per simulation from ``constants`` (appended in kernel order).
     """
 
     name: str
@@ -43,6 +45,7 @@ class Model:
     parameters: ParameterSet
     constants: ParameterSet
     integration_step: float
+    derive: Callable[[np.ndarray], np.ndarray]
     inputs: tuple[str, ...] = INPUTS
     required_inputs: tuple[str, ...] = REQUIRED_INPUTS
 
@@ -73,6 +76,11 @@ class Model:
 
     def constants_vector(self, overrides: dict[str, float] | None = None) -> np.ndarray:
         return self.constants.vector(overrides)
+
+    def kernel_constants(self, constants: np.ndarray | None = None) -> np.ndarray:
+        """Design constants followed by the values derived from them, as the kernel reads them."""
+        c = self.constants_vector() if constants is None else np.asarray(constants, dtype=np.float64)
+        return np.ascontiguousarray(np.concatenate([c, self.derive(c)]))
 
     def split_assignments(self, values: dict[str, float]) -> tuple[dict[str, float], dict[str, float]]:
         """Sort ``NAME=VALUE`` settings into estimated parameters and design constants."""

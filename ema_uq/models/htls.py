@@ -14,7 +14,7 @@ from numba import njit
 from ..params import Parameter, ParameterSet
 from .base import Model
 from .components import (BRAKE_AND_SETTINGS, DEG, brake_torque, const, loss_parameters,
-                         rig_gain, smooth_sign, station_torques)
+                         rig_gain, screw_constants, smooth_sign, station_torques)
 
 # --- estimated parameters Θ (eq. 44), kernel positions ----------------------------------
 (P_J, P_B_TS1, P_C_TS1, P_B_U1, P_C_U1, P_B_TP1, P_C_TP1,
@@ -25,6 +25,9 @@ from .components import (BRAKE_AND_SETTINGS, DEG, brake_torque, const, loss_para
  C_M_BMAX, C_K_B, C_OMEGA_HALF, C_OMEGA_EPS) = range(13)
 
 # --- outputs (eq. 42 without the two gains) ---------------------------------------------
+# --- derived constants appended by ``derived_constants`` (kernel positions) --------------
+(D_R_SCG, D_LEAD, D_INV_COS_B1, D_INV_COS_B2) = range(13, 13 + 4)
+
 OUTPUTS = ("Omega", "y1", "y2", "I_A", "Omega_TP1", "Omega_TP2", "Omega_U1", "Omega_U2",
            "M_ER1", "M_ER2", "M_TSER1", "M_TSER2", "M_UER1", "M_UER2", "M_TPER1", "M_TPER2")
 OUTPUT_UNITS = ("rad/s", "m", "m", "A") + ("rad/s",) * 4 + ("N m",) * 8
@@ -59,16 +62,21 @@ CONSTANTS = ParameterSet((
     const("k_y", "m/rad", 0.3 / (40.0 * DEG), "flap command to carriage position"),
 ) + BRAKE_AND_SETTINGS)
 
+def derived_constants(c: np.ndarray) -> np.ndarray:
+    """Constants computed once per simulation from the design constants (kernel layout D_*)."""
+    return np.array(screw_constants(c[C_R], c[C_GAMMA], c[C_BETA1], c[C_BETA2]))
+
+
 MODEL = Model(
     name="htls", model_id=0, title="HT/LS (high torque / low speed)",
     states=STATES, outputs=OUTPUTS, output_units=OUTPUT_UNITS,
-    parameters=PARAMETERS, constants=CONSTANTS, integration_step=1e-3,
+    parameters=PARAMETERS, constants=CONSTANTS, derive=derived_constants, integration_step=5e-4,
 )
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always", error_model="numpy")
 def evaluate(x, u, th, c, dx, y):
-    """State derivative ``dx`` and all outputs ``y`` at state ``x`` and held input ``u``.
+    """State derivative ``dx`` and all outputs ``y``; ``c`` is ``MODEL.kernel_constants(...)`` at state ``x`` and held input ``u``.
 
     x = [Omega, y1, y2, theta]; u = [phi_r, F_ER1, F_ER2, brake]; th, c per the layouts above.
     """
@@ -78,17 +86,19 @@ def evaluate(x, u, th, c, dx, y):
     omega_tp2 = omega / c[C_I_TP2]
     omega_u1 = omega_tp1  # g_U = 1 (eq. 7)
     omega_u2 = omega_tp2
+    sign_tp1 = smooth_sign(omega_tp1, eps)
+    sign_tp2 = smooth_sign(omega_tp2, eps)
 
-    m_er1, m_tser1, m_uer1 = station_torques(omega_u1, u[1], th[P_B_TS1], th[P_C_TS1], th[P_B_U1],
-                                             th[P_C_U1], c[C_R], c[C_GAMMA], c[C_BETA1], eps)
-    m_er2, m_tser2, m_uer2 = station_torques(omega_u2, u[2], th[P_B_TS2], th[P_C_TS2], th[P_B_U2],
-                                             th[P_C_U2], c[C_R], c[C_GAMMA], c[C_BETA2], eps)
+    m_er1, m_tser1, m_uer1 = station_torques(omega_u1, sign_tp1, u[1], th[P_B_TS1], th[P_C_TS1], th[P_B_U1],
+                                             th[P_C_U1], c[D_R_SCG], c[D_INV_COS_B1])
+    m_er2, m_tser2, m_uer2 = station_torques(omega_u2, sign_tp2, u[2], th[P_B_TS2], th[P_C_TS2], th[P_B_U2],
+                                             th[P_C_U2], c[D_R_SCG], c[D_INV_COS_B2])
     brake = u[3]
     m_b21 = brake_torque(brake, omega_tp1, c[C_M_BMAX], c[C_K_B], c[C_OMEGA_HALF], eps)
     m_b22 = brake_torque(brake, omega_tp2, c[C_M_BMAX], c[C_K_B], c[C_OMEGA_HALF], eps)
     m_b1 = brake_torque(brake, omega, c[C_M_BMAX], c[C_K_B], c[C_OMEGA_HALF], eps)
-    m_tper1 = m_uer1 / c[C_I_TP1] + th[P_B_TP1] * omega_tp1 + th[P_C_TP1] * smooth_sign(omega_tp1, eps) + m_b21
-    m_tper2 = m_uer2 / c[C_I_TP2] + th[P_B_TP2] * omega_tp2 + th[P_C_TP2] * smooth_sign(omega_tp2, eps) + m_b22
+    m_tper1 = m_uer1 / c[C_I_TP1] + th[P_B_TP1] * omega_tp1 + th[P_C_TP1] * sign_tp1 + m_b21
+    m_tper2 = m_uer2 / c[C_I_TP2] + th[P_B_TP2] * omega_tp2 + th[P_C_TP2] * sign_tp2 + m_b22
 
     # cascaded P control (eqs. 32-35, 38)
     y_r = c[C_K_Y] * u[0]
@@ -96,7 +106,7 @@ def evaluate(x, u, th, c, dx, y):
     omega_r = th[P_P_ACE] * (y_r - y_s)
     m_n = min(max(th[P_P_PCE] * (omega_r - omega), c[C_M_MIN]), c[C_M_MAX])
 
-    lead = c[C_R] * math.tan(c[C_GAMMA])
+    lead = c[D_LEAD]
     dx[X_OMEGA] = (m_n - (m_b1 + m_tper1 + m_tper2)) / th[P_J]
     dx[X_Y1] = lead * omega_u1
     dx[X_Y2] = lead * omega_u2

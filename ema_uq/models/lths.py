@@ -13,7 +13,7 @@ from numba import njit
 from ..params import Parameter, ParameterSet
 from .base import Model
 from .components import (BRAKE_AND_SETTINGS, DEG, brake_torque, const, loss_parameters,
-                         rig_gain, smooth_sign, station_torques)
+                         rig_gain, screw_constants, smooth_sign, station_torques)
 
 # --- estimated parameters Θ (eq. 47), kernel positions ----------------------------------
 (P_J, P_B_TS1, P_C_TS1, P_B_U1, P_C_U1, P_B_TP1, P_C_TP1,
@@ -23,6 +23,9 @@ from .components import (BRAKE_AND_SETTINGS, DEG, brake_torque, const, loss_para
 # --- design constants and settings, kernel positions ------------------------------------
 (C_I_MG, C_I_BG1, C_I_BG2, C_I_TP2, C_R, C_GAMMA, C_BETA1, C_BETA2, C_K_Y, C_U_MAX, C_D_IS,
  C_M_BMAX, C_K_B, C_OMEGA_HALF, C_OMEGA_EPS) = range(15)
+
+# --- derived constants appended by ``derived_constants`` (kernel positions) --------------
+(D_R_SCG, D_LEAD, D_INV_COS_B1, D_INV_COS_B2) = range(15, 15 + 4)
 
 OUTPUTS = ("Omega", "y1", "y2", "I_A", "U_A", "Omega_MG", "Omega_TP1", "Omega_MG2", "Omega_TP2",
            "Omega_U1", "Omega_U2", "M_ER1", "M_ER2", "M_TSER1", "M_TSER2", "M_UER1", "M_UER2",
@@ -64,16 +67,21 @@ CONSTANTS = ParameterSet((
     const("D_IS", "N m/rad", 0.0, "input-shaft stiffness (eq. 22; zero nominal)"),
 ) + BRAKE_AND_SETTINGS)
 
+def derived_constants(c: np.ndarray) -> np.ndarray:
+    """Constants computed once per simulation from the design constants (kernel layout D_*)."""
+    return np.array(screw_constants(c[C_R], c[C_GAMMA], c[C_BETA1], c[C_BETA2]))
+
+
 MODEL = Model(
     name="lths", model_id=1, title="LT/HS (low torque / high speed)",
     states=STATES, outputs=OUTPUTS, output_units=OUTPUT_UNITS,
-    parameters=PARAMETERS, constants=CONSTANTS, integration_step=5e-4,
+    parameters=PARAMETERS, constants=CONSTANTS, derive=derived_constants, integration_step=2e-4,
 )
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always", error_model="numpy")
 def evaluate(x, u, th, c, dx, y):
-    """State derivative ``dx`` and all outputs ``y``; x = [I_A, Omega, y1, y2, theta]."""
+    """State derivative ``dx`` and all outputs ``y``; ``c`` is ``MODEL.kernel_constants(...)``; x = [I_A, Omega, y1, y2, theta]."""
     eps = c[C_OMEGA_EPS]
     i_a = x[X_I_A]
     omega = x[X_OMEGA]
@@ -83,17 +91,19 @@ def evaluate(x, u, th, c, dx, y):
     omega_tp2 = omega_mg2 / c[C_I_TP2]
     omega_u1 = omega_tp1  # g_U = 1 (eq. 26)
     omega_u2 = omega_tp2
+    sign_tp1 = smooth_sign(omega_tp1, eps)
+    sign_tp2 = smooth_sign(omega_tp2, eps)
 
-    m_er1, m_tser1, m_uer1 = station_torques(omega_u1, u[1], th[P_B_TS1], th[P_C_TS1], th[P_B_U1],
-                                             th[P_C_U1], c[C_R], c[C_GAMMA], c[C_BETA1], eps)
-    m_er2, m_tser2, m_uer2 = station_torques(omega_u2, u[2], th[P_B_TS2], th[P_C_TS2], th[P_B_U2],
-                                             th[P_C_U2], c[C_R], c[C_GAMMA], c[C_BETA2], eps)
+    m_er1, m_tser1, m_uer1 = station_torques(omega_u1, sign_tp1, u[1], th[P_B_TS1], th[P_C_TS1], th[P_B_U1],
+                                             th[P_C_U1], c[D_R_SCG], c[D_INV_COS_B1])
+    m_er2, m_tser2, m_uer2 = station_torques(omega_u2, sign_tp2, u[2], th[P_B_TS2], th[P_C_TS2], th[P_B_U2],
+                                             th[P_C_U2], c[D_R_SCG], c[D_INV_COS_B2])
     brake = u[3]
     m_b22 = brake_torque(brake, omega_tp2, c[C_M_BMAX], c[C_K_B], c[C_OMEGA_HALF], eps)
     m_b2 = brake_torque(brake, omega_tp1, c[C_M_BMAX], c[C_K_B], c[C_OMEGA_HALF], eps)
-    m_mg2 = m_uer2 / c[C_I_TP2] + th[P_B_TP2] * omega_tp2 + th[P_C_TP2] * smooth_sign(omega_tp2, eps) + m_b22
+    m_mg2 = m_uer2 / c[C_I_TP2] + th[P_B_TP2] * omega_tp2 + th[P_C_TP2] * sign_tp2 + m_b22
     m_tper = (m_uer1 / c[C_I_BG1] + m_mg2 / c[C_I_BG2] + th[P_B_TP1] * omega_tp1
-              + th[P_C_TP1] * smooth_sign(omega_tp1, eps) + m_b2)
+              + th[P_C_TP1] * sign_tp1 + m_b2)
     m_iser = m_tper + c[C_D_IS] * x[X_THETA] / c[C_I_MG]
     m_mger = m_iser / c[C_I_MG] + th[P_B_MG] * omega_mg + th[P_C_MG] * smooth_sign(omega_mg, eps)
 
@@ -103,7 +113,7 @@ def evaluate(x, u, th, c, dx, y):
     u_a = th[P_P_PCE] / th[P_K_N] * (th[P_P_ACE] * (y_r - y_s) - omega)
     u_a = min(max(u_a, -c[C_U_MAX]), c[C_U_MAX])
 
-    lead = c[C_R] * math.tan(c[C_GAMMA])
+    lead = c[D_LEAD]
     dx[X_I_A] = (-th[P_R_A] * i_a - th[P_K_S] * omega + u_a) / th[P_L_A]
     dx[X_OMEGA] = (th[P_K_N] * i_a - m_mger) / th[P_J]
     dx[X_Y1] = lead * omega_u1

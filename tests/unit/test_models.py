@@ -59,7 +59,7 @@ def evaluate(concept, x, u, constants=None):
     module = htls if concept == "htls" else lths
     dx = np.full(model.n_states, np.nan)
     y = np.full(model.n_outputs, np.nan)
-    c = model.constants_vector(constants)
+    c = model.kernel_constants(model.constants_vector(constants))
     module.evaluate(np.asarray(x, float), np.asarray(u, float), model.parameters.nominal, c, dx, y)
     assert np.all(np.isfinite(dx)) and np.all(np.isfinite(y)), "evaluate left entries unset"
     return dx, dict(zip(model.outputs, y))
@@ -253,9 +253,10 @@ def test_rhs_matches_reference_at_random_states(concept):
     scale = [30.0, 0.1, 0.1, 50.0] if concept == "htls" else [20.0, 900.0, 0.1, 0.1, 50.0]
     th, c = model.parameters.nominal, model.constants.nominal
     th_d, c_d = model.parameters.as_dict(th), model.constants.as_dict(c)
+    c = model.kernel_constants(c)
     if concept == "lths":
         c_d["D_IS"] = 1.7
-        c = model.constants_vector({"D_IS": 1.7})
+        c = model.kernel_constants(model.constants_vector({"D_IS": 1.7}))
     dx, y = np.empty(model.n_states), np.empty(model.n_outputs)
     for _ in range(200):
         x = rng.normal(size=model.n_states) * scale
