@@ -34,11 +34,12 @@ class Settings:
 class _State:
     """Current iterate: full vector, residuals, R and the objective."""
 
-    def __init__(self, problem: FitProblem, theta: np.ndarray, residuals: np.ndarray):
+    def __init__(self, problem: FitProblem, theta: np.ndarray, predicted: np.ndarray):
         self.theta = theta
         self.free = theta[problem.free_index]
-        self.residuals = residuals
-        self.objective, self.log_det_r = problem.objective(residuals, self.free)
+        self.predicted = predicted
+        self.residuals = problem.observed - predicted
+        self.objective, self.log_det_r = problem.objective(self.residuals, self.free)
 
 
 class _Counter:
@@ -47,9 +48,9 @@ class _Counter:
 
 
 def _evaluate(problem: FitProblem, thetas: np.ndarray, counter: _Counter) -> list[_State]:
-    residuals = problem.residuals(thetas)
+    predicted = problem.predict(thetas)
     counter.n += thetas.shape[0]
-    return [_State(problem, thetas[i], residuals[i]) for i in range(thetas.shape[0])]
+    return [_State(problem, thetas[i], predicted[i]) for i in range(thetas.shape[0])]
 
 
 def _information(problem: FitProblem, state: _State, scale: np.ndarray, counter: _Counter, central: bool = True):
@@ -72,8 +73,7 @@ def _information(problem: FitProblem, state: _State, scale: np.ndarray, counter:
     if central:
         sens = (predicted[:p] - predicted[p:]).transpose(1, 2, 0) / (2.0 * h) * scale
     else:
-        base = problem.observed - state.residuals
-        sens = (predicted - base[None]).transpose(1, 2, 0) / h * scale
+        sens = (predicted - state.predicted[None]).transpose(1, 2, 0) / h * scale
     r_inv = np.linalg.inv(covariance(state.residuals))
     weighted = np.einsum("kcj,cd->kdj", sens, r_inv)
     info = np.einsum("kdj,kdl->jl", weighted, sens)
@@ -104,6 +104,31 @@ def _check_information(problem: FitProblem, info: np.ndarray, sens: np.ndarray) 
         )
 
 
+def _bounded_step(problem: FitProblem, state: _State, matrix: np.ndarray, grad: np.ndarray,
+                  scale: np.ndarray) -> np.ndarray:
+    """Solve ``matrix Δs = -grad`` with parameters held that sit at a bound and would leave it.
+
+    Clipping a full step instead would move the other parameters as if the bounded one had
+    gone past its bound, and the iteration would stall away from the constrained optimum.
+    """
+    idx = problem.free_index
+    lower, upper = problem.parameters.lower[idx], problem.parameters.upper[idx]
+    at_lower = state.free <= lower
+    at_upper = state.free >= upper
+    held = np.zeros(scale.size, dtype=bool)
+    for _ in range(scale.size):
+        step = np.zeros(scale.size)
+        keep = ~held
+        step[keep] = -np.linalg.solve(matrix[np.ix_(keep, keep)], grad[keep])
+        leaving = keep & ((at_lower & (step < 0)) | (at_upper & (step > 0)))
+        if not leaving.any():
+            return step * scale
+        held |= leaving
+        if held.all():
+            return np.zeros(scale.size)
+    return step * scale
+
+
 def _project(problem: FitProblem, free: np.ndarray) -> np.ndarray:
     idx = problem.free_index
     return np.clip(free, problem.parameters.lower[idx], problem.parameters.upper[idx])
@@ -125,7 +150,7 @@ def _record(history: list, iteration: int, state: _State, problem: FitProblem, c
 
 def _gn_step(problem, state, info, grad, scale, settings, counter):
     """Solve F Δ = -G; halve the step until the objective decreases (eq. 51-52 with relaxation)."""
-    delta = -np.linalg.solve(info, grad) * scale
+    delta = _bounded_step(problem, state, info, grad, scale)
     alpha = 1.0
     for halvings in range(settings.max_halvings + 1):
         trial_free = _project(problem, state.free + alpha * delta)
@@ -149,7 +174,8 @@ class _LevenbergMarquardt:
         eye = np.eye(info.shape[0])
         for increases in range(settings.lm_max_increases + 1):
             lams = (self.lam, self.lam / settings.lm_nu)
-            frees = [_project(problem, state.free - np.linalg.solve(info + lam * eye, grad) * scale) for lam in lams]
+            frees = [_project(problem, state.free + _bounded_step(problem, state, info + lam * eye, grad, scale))
+                     for lam in lams]
             trials = _evaluate(problem, problem.full_vectors(np.array(frees), state.theta), counter)
             best = int(np.argmin([t.objective for t in trials]))
             if trials[best].objective < state.objective:
@@ -210,8 +236,14 @@ def estimate(
             _check_information(problem, info, sens)
         new, extra = stepper(problem, state, info, grad, scale, settings, counter)
         if new is None:
-            converged = True
-            message = "no further decrease of det R along the step (at a minimum to numerical precision)"
+            # exhausted step control is convergence only when the model promised no real decrease
+            step = _bounded_step(problem, state, info, grad, scale) / scale
+            promised = -0.5 * float(grad @ step)
+            converged = promised < settings.tolerance * problem.n_samples / 2
+            message = ("no further decrease of det R along the step (at a minimum to numerical precision)"
+                       if converged else
+                       f"step control exhausted although a decrease of {promised:.3g} in the objective was "
+                       "predicted: restart closer to the optimum or check bounds and data")
             iteration -= 1
             break
         change = _relative_change(state, new, problem.n_samples)
