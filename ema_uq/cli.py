@@ -261,6 +261,82 @@ def _run_identify(args: argparse.Namespace) -> str:
             f"{fit.n_simulations} simulations, {fit.wall_time_s:.1f} s{tail}")
 
 
+def _add_sample(subparsers) -> None:
+    p = subparsers.add_parser(
+        "sample", help="Bayesian posterior by emcee, started from an ML fit; ArviZ NetCDF output",
+        description="Sample the posterior of the init fit's free parameters (det R or known-sigma likelihood, "
+                    "flat/lognormal/uniform priors, rig priors of p_ACE and p_PCE) with independent emcee "
+                    "ensembles until every chain is longer than 50 autocorrelation times, and write the "
+                    "ArviZ InferenceData to POSTERIOR.nc. The HDF5 backend lets a killed run resume.")
+    _add_data(p)
+    _add_concept(p)
+    p.add_argument("--init", required=True, metavar="FIT.json", help="ML fit of the same concept (ema-uq identify)")
+    p.add_argument("--out", required=True, metavar="POSTERIOR.nc")
+    _add_seed(p)
+    p.add_argument("--walkers", type=int, default=None, metavar="N",
+                   help="walkers per ensemble (default max(2 x free parameters, 16))")
+    p.add_argument("--chains", type=int, default=4, metavar="N", help="independent ensembles (default 4)")
+    p.add_argument("--max-steps", type=int, default=20000, metavar="N", help="step cap per ensemble (default 20000)")
+    p.add_argument("--check-every", type=int, default=100, metavar="N",
+                   help="steps between stopping-rule checks (default 100)")
+    p.add_argument("--spread", type=float, default=1.0, metavar="C",
+                   help="start walkers from N(estimate, C x Cramér-Rao covariance) (default 1)")
+    p.add_argument("--moves", choices=("de", "stretch"), default="de", help="emcee moves (default de)")
+    p.add_argument("--backend", default=None, metavar="FILE.h5",
+                   help="HDF5 chain store; an existing one of the same run is resumed (default: --out with .h5)")
+    p.add_argument("--noise-sigma", choices=("estimated", "known"), default="estimated",
+                   help="estimated: concentrated det R likelihood; known: Gaussian with each channel's "
+                        "RMS residual at the ML estimate as its sigma (default estimated)")
+    p.add_argument("--prior", action="append", default=[], metavar="NAME=KIND:A,B",
+                   help="prior of a free parameter: lognormal:mu,sigma (of ln value), uniform:lo,hi or "
+                        "normal:mean,sd; repeatable (default: flat on the bounds, rig normal for p_ACE, p_PCE)")
+    p.add_argument("--predictive", type=int, default=100, metavar="N",
+                   help="posterior draws simulated for the predictive group (default 100)")
+    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    p.set_defaults(handler=_run_sample)
+
+
+def _run_sample(args: argparse.Namespace) -> str:
+    from pathlib import Path
+
+    from . import io
+    from .bayes import BayesError, SamplerSettings, parse_prior, sample
+    from .identify import FitProblem
+    from .models import get_model
+
+    if args.walkers is not None and args.walkers < 2:
+        raise CLIError(f"--walkers {args.walkers}: give a positive even number of walkers")
+    out = io.prepare_output(args.out)
+    backend = Path(args.backend) if args.backend else out.with_suffix(".h5")
+    io.prepare_output(backend)
+    priors = {}
+    for text in args.prior:
+        name, kind, a, b = parse_prior(text)
+        if name in priors:
+            raise BayesError(f"--prior {name} given twice; give one prior per parameter")
+        priors[name] = (kind, a, b)
+    fit = _read_fit(args.init, args.concept)
+    model = get_model(args.concept)
+    parameters = model.parameters.freeing_only(fit.free_names)
+    measurements = _read_all(args.data, args.concept)
+    problem = FitProblem(measurements, parameters=parameters, channels=fit.channels or None)
+    settings = SamplerSettings(n_walkers=args.walkers, n_ensembles=args.chains, max_steps=args.max_steps,
+                               check_every=args.check_every, spread=args.spread, moves=args.moves,
+                               n_predictive=args.predictive)
+
+    def progress(line: str) -> None:
+        print(f"{PROG} sample: {line}", file=sys.stderr, flush=True)
+
+    result = sample(problem, fit, priors=priors, noise_sigma=args.noise_sigma, settings=settings, seed=args.seed,
+                    backend=backend, progress=None if args.quiet else progress)
+    result.to_netcdf(out)
+    table = result.summary()
+    return (f"wrote {out}: {model.name} posterior of {len(result.names)} parameters, "
+            f"{'converged' if result.converged else 'NOT converged (step cap)'} after {result.n_steps} steps, "
+            f"max R-hat {table['r_hat'].max():.3f}, min bulk ESS {table['ess_bulk'].min():.0f}, "
+            f"{result.wall_time_s:.1f} s (chains in {backend})")
+
+
 def _add_report(subparsers) -> None:
     p = subparsers.add_parser("report", help="write the self-contained HTML report of a study",
                               description="Collect a study's result files into one HTML report with embedded figures.")
@@ -304,7 +380,7 @@ def _run_check_study(args: argparse.Namespace) -> str:
 # entry point
 # --------------------------------------------------------------------------------------
 #: Register functions, one per verb, in the order ``--help`` lists them.
-VERBS: tuple[Callable, ...] = (_add_simulate, _add_identify, _add_report, _add_check_study)
+VERBS: tuple[Callable, ...] = (_add_simulate, _add_identify, _add_sample, _add_report, _add_check_study)
 
 
 def build_parser() -> argparse.ArgumentParser:
