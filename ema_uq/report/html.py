@@ -111,6 +111,30 @@ def _identification_section(study: dict, results: Path) -> tuple[str, dict]:
     return "\n".join(parts), fits
 
 
+def _stage_cost_section(results: Path) -> str:
+    """Wall time and peak memory of every workflow job, from Snakemake's benchmark files."""
+    rows, total = [], 0.0
+    for path in sorted((results / "benchmarks").glob("*.tsv")):
+        lines = [line.split("\t") for line in path.read_text().splitlines() if line.strip()]
+        if len(lines) < 2:
+            continue
+        record = dict(zip(lines[0], lines[-1]))
+        try:
+            seconds, rss = float(record["s"]), float(record["max_rss"])
+        except (KeyError, ValueError):
+            continue  # a benchmark still being written, or from another Snakemake version
+        total += seconds
+        cpu = record.get("cpu_time", "")
+        rows.append([html.escape(path.stem), f"{seconds:.1f}", _fmt(float(cpu), 3) if cpu not in ("", "NA") else _fmt(None),
+                     f"{rss:.0f}"])
+    if not rows:
+        return '<p class="muted">No benchmark files (the stages were not run by the workflow).</p>'
+    rows.append(["<b>total</b>", f"<b>{total:.1f}</b>", "", ""])
+    return ("<p>From the workflow's benchmark files (one per job; the report's own job is listed from its "
+            "previous run). Peak memory is the maximum resident set size.</p>"
+            + _table(["job", "wall time [s]", "CPU time [s]", "peak memory [MB]"], rows))
+
+
 def _provenance_section(study: dict, study_path: Path, results: Path, fits: dict) -> str:
     from .. import __version__
 
@@ -134,6 +158,7 @@ def build_report(study: dict, study_path: str | Path, results: str | Path) -> st
     pending = [title for key, title in stages.items() if not any(results.glob(f"{key}*"))]
     if pending:
         sections.append(("pending", "Stages not run", "<p class=\"muted\">" + ", ".join(pending) + "</p>"))
+    sections.append(("cost", "Time and memory per stage", _stage_cost_section(results)))
     sections.append(("provenance", "Provenance", _provenance_section(study, study_path, results, fits)))
     body = "\n".join(f'<h2 id="{key}">{title}</h2>\n{content}' for key, title, content in sections)
     nav = " ".join(f'<a href="#{key}">{title}</a>' for key, title, _ in sections)

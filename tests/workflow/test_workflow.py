@@ -102,6 +102,17 @@ def test_smoke_study_runs_end_to_end(smoke_run):
         assert (smoke_run / f"results/smoke/benchmarks/identify_{method}.tsv").exists()
 
 
+def test_report_opens_in_headless_chromium_without_console_errors(smoke_run, tmp_path):
+    from ema_uq.report.browser import check_page, find_browser
+
+    if find_browser() is None:
+        pytest.skip("no Chromium on this machine (Debian: apt-get install chromium)")
+    page = check_page(smoke_run / "reports" / "smoke.html", tmp_path / "smoke.png")
+    assert page.console_errors == ()
+    png = page.screenshot.read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 20_000  # a rendered page, not a blank one
+
+
 def test_rerun_reproduces_every_number(smoke_run, tmp_path):
     again = copy_workflow(tmp_path)
     snakemake(again, *SMOKE)
