@@ -376,11 +376,35 @@ def _run_check_study(args: argparse.Namespace) -> str:
     return f"{args.study}: valid study {study['name']!r} ({study['concept']})"
 
 
+def _add_screenshot(subparsers) -> None:
+    p = subparsers.add_parser("screenshot", help="open a report in headless Chromium and save its first screen",
+                              description="Render an HTML report in headless Chromium, write a PNG of its first "
+                                          "screen and fail when the page logs console errors.")
+    p.add_argument("report", metavar="REPORT.html")
+    p.add_argument("--out", required=True, metavar="SCREEN.png")
+    p.add_argument("--width", type=int, default=1280)
+    p.add_argument("--height", type=int, default=900)
+    p.set_defaults(handler=_run_screenshot)
+
+
+def _run_screenshot(args: argparse.Namespace) -> str:
+    from .report.browser import BrowserError, check_page
+
+    try:
+        page = check_page(args.report, args.out, width=args.width, height=args.height)
+    except BrowserError as exc:
+        raise CLIError(str(exc)) from None
+    if not page.ok:
+        raise CLIError(f"{args.report} logs console errors in Chromium: {' | '.join(page.console_errors[:3])}")
+    return page.summary()
+
+
 # --------------------------------------------------------------------------------------
 # entry point
 # --------------------------------------------------------------------------------------
 #: Register functions, one per verb, in the order ``--help`` lists them.
-VERBS: tuple[Callable, ...] = (_add_simulate, _add_identify, _add_sample, _add_report, _add_check_study)
+VERBS: tuple[Callable, ...] = (_add_simulate, _add_identify, _add_sample, _add_report, _add_check_study,
+                               _add_screenshot)
 
 
 def build_parser() -> argparse.ArgumentParser:
