@@ -111,6 +111,52 @@ def _identification_section(study: dict, results: Path) -> tuple[str, dict]:
     return "\n".join(parts), fits
 
 
+def _posterior_section(study: dict, results: Path) -> str:
+    """Posterior table (truth, ML ± CRB, mean ± sd, 90 % HDI, R-hat, ESS, MCSE), trace,
+    corner and predictive-band figures from ``posterior.nc``."""
+    from ..bayes import PosteriorResult
+    from . import bayes_figures
+
+    path = results / "posterior.nc"
+    if not path.exists():
+        return '<p class="muted">Posterior not sampled.</p>'
+    post = PosteriorResult.from_netcdf(path)
+    model = get_model(study["concept"])
+    truth = dict(zip(model.parameters.names, model.parameters.vector(study["data"].get("set", {}))))
+    table = post.summary()
+    hdi_lo, hdi_hi = [c for c in table.columns if c.startswith("hdi_")][:2]
+    rows, flagged = [], []
+    for name in post.names:
+        r = table.loc[name]
+        ok = r["r_hat"] < 1.01 and r["ess_bulk"] >= 400
+        if not ok:
+            flagged.append(name)
+        ratio = r["sd"] / r["crb_sd"] if r["crb_sd"] > 0 else np.nan
+        rows.append([name, _fmt(truth.get(name)), f"{_fmt(r['ml'], 6)} ± {_fmt(r['crb_sd'], 3)}",
+                     f"{_fmt(r['mean'], 6)} ± {_fmt(r['sd'], 3)}", f"[{_fmt(r[hdi_lo], 6)}, {_fmt(r[hdi_hi], 6)}]",
+                     _fmt(ratio, 3), _fmt(r["r_hat"], 4), f"{r['ess_bulk']:.0f}", f"{r['ess_tail']:.0f}",
+                     _fmt(r["mcse_mean"], 2)])
+    a = post.attrs
+    state = "converged" if post.converged else '<span class="flag">not converged</span>'
+    facts = (f"{a['n_ensembles']} ensembles × {a['n_walkers']} walkers × {post.n_steps} steps "
+             f"({state}: "
+             f"{html.escape(str(a['stop_reason']))}); burn-in {post.burn_in}, thin {post.thin}, "
+             f"max τ {float(np.max(post.tau)):.1f} steps, {post.n_simulations} simulations in "
+             f"{post.wall_time_s:.0f} s, seed {post.seed}, moves {html.escape(str(a.get('moves', '')))}.")
+    parts = [f"<p>emcee started from the ML estimate. {facts}</p>",
+             _table(["parameter", "truth", "ML ± CRB σ", "posterior mean ± sd", "90 % HDI", "sd / CRB σ",
+                     "R-hat", "bulk ESS", "tail ESS", "MCSE mean"], rows)]
+    if flagged:
+        parts.append(f'<p class="flag">R-hat ≥ 1.01 or bulk ESS &lt; 400: {html.escape(", ".join(flagged))}</p>')
+    parts += ["<h3>Traces</h3>", _img(bayes_figures.trace(post), "trace plots"),
+              "<h3>Corner plot</h3>", _img(bayes_figures.pair(post), "corner plot")]
+    try:
+        parts += ["<h3>Posterior predictive bands</h3>", _img(bayes_figures.predictive_bands(post), "predictive bands")]
+    except ValueError as exc:
+        parts.append(f'<p class="muted">{html.escape(str(exc))}</p>')
+    return "\n".join(parts)
+
+
 def _stage_cost_section(results: Path) -> str:
     """Wall time and peak memory of every workflow job, from Snakemake's benchmark files."""
     rows, total = [], 0.0
@@ -152,8 +198,9 @@ def build_report(study: dict, study_path: str | Path, results: str | Path) -> st
     """HTML text of the report for ``study`` from the result files in ``results``."""
     results, study_path = Path(results), Path(study_path)
     ident, fits = _identification_section(study, results)
-    sections = [("identification", "Maximum-likelihood identification", ident)]
-    stages = {"posterior": "Bayesian posterior", "sensitivity": "Sobol sensitivity",
+    sections = [("identification", "Maximum-likelihood identification", ident),
+                ("posterior", "Bayesian posterior", _posterior_section(study, results))]
+    stages = {"posterior": "Bayesian posterior", "sobol": "Sobol sensitivity",
               "identifiability": "Identifiability", "gap": "Sim-to-real gap"}
     pending = [title for key, title in stages.items() if not any(results.glob(f"{key}*"))]
     if pending:
