@@ -6,7 +6,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from .models import INPUTS, REQUIRED_INPUTS, Model, get_model
+from .models import INPUTS, REQUIRED_INPUTS, Model, concepts, get_model
 from .models.components import DEG
 
 SAMPLE_TIME = 0.01  # s, output sample time of the reference experiments
@@ -32,18 +32,22 @@ class Experiment:
         time = np.asarray(self.time, dtype=float)
         check_time_grid(time)
         inputs = {}
+        families = _input_families()
+        known = tuple(dict.fromkeys(name for names, _ in families for name in names))
         for key, values in self.inputs.items():
-            if key not in INPUTS:
-                raise ExperimentError(f"unknown input {key!r}; inputs are {', '.join(INPUTS)}")
+            if key not in known:
+                raise ExperimentError(f"unknown input {key!r}; inputs are {', '.join(known)}")
             values = np.asarray(values, dtype=float)
             if values.shape != time.shape:
                 raise ExperimentError(f"input {key} has shape {values.shape}, time has {time.shape}")
             if not np.all(np.isfinite(values)):
                 raise ExperimentError(f"input {key} contains NaN or infinite samples; inputs must be complete")
             inputs[key] = values
-        missing = [k for k in REQUIRED_INPUTS if k not in inputs]
+        # the concept family whose inputs hold every given input (EMA first)
+        names, required = next(((n, r) for n, r in families if set(inputs) <= set(n)), families[0])
+        missing = [k for k in required if k not in inputs]
         if missing:
-            raise ExperimentError(f"missing input(s) {', '.join(missing)}; an experiment needs {', '.join(REQUIRED_INPUTS)}")
+            raise ExperimentError(f"missing input(s) {', '.join(missing)}; an experiment needs {', '.join(required)}")
         object.__setattr__(self, "time", time)
         object.__setattr__(self, "inputs", inputs)
 
@@ -56,11 +60,19 @@ class Experiment:
         return float(self.time[1] - self.time[0])
 
     def input_matrix(self, model: Model | None = None) -> np.ndarray:
-        """(n_samples, 4) inputs in kernel order; an absent brake is released (0)."""
-        return np.column_stack([self.inputs.get(name, np.zeros_like(self.time)) for name in INPUTS])
+        """(n_samples, n_inputs) inputs in ``model.inputs`` order (default: the EMA layout);
+        an absent optional input (brake, EMPS pulse) is zero."""
+        names = INPUTS if model is None else model.inputs
+        return np.column_stack([self.inputs.get(name, np.zeros_like(self.time)) for name in names])
 
     def slice(self, start: int, stop: int) -> "Experiment":
         return Experiment(self.name, self.time[start:stop], {k: v[start:stop] for k, v in self.inputs.items()})
+
+
+def _input_families() -> list[tuple[tuple[str, ...], tuple[str, ...]]]:
+    """(inputs, required inputs) of every registered concept, without repeats, EMA first."""
+    families = dict.fromkeys((m.inputs, m.required_inputs) for m in map(get_model, concepts()))
+    return sorted(families, key=lambda family: family[0] != INPUTS)
 
 
 def check_time_grid(time: np.ndarray, where: str = "time") -> None:
@@ -141,6 +153,12 @@ class Measurement:
     def __post_init__(self) -> None:
         model = get_model(self.concept)
         channels = tuple(self.channels)
+        wrong = [k for k in self.experiment.inputs if k not in model.inputs]
+        missing = [k for k in model.required_inputs if k not in self.experiment.inputs]
+        if wrong or missing:
+            raise ExperimentError(
+                f"experiment {self.experiment.name!r} has inputs {', '.join(self.experiment.inputs)}, but concept "
+                f"{self.concept} takes {', '.join(model.inputs)} (required: {', '.join(model.required_inputs)})")
         model.output_index(channels)  # unknown names raise here
         if len(set(channels)) != len(channels):
             raise ExperimentError(f"duplicate channels in {channels}")

@@ -14,6 +14,7 @@ from numba import njit, prange
 
 from .models import Model, get_model
 from .models import htls, lths
+from .models.effect_kernels import evaluate_htls_effects, evaluate_lths_effects
 
 
 class SimulationError(ValueError):
@@ -68,6 +69,65 @@ def _integrate_batch(model_id, thetas, consts, inputs, x0, h, n_sub, out):
     """Kernel entry: thetas (n_sets, n_params) -> out (n_sets, n_samples, n_outputs)."""
     for s in prange(thetas.shape[0]):
         _integrate_one(model_id, thetas[s], consts, inputs, x0, h, n_sub, out[s])
+
+
+# --- models with unmodelled effects (models/effects.py) -------------------------------------
+# A second entry with the same RK4 loop around the augmented right-hand sides. Kept apart
+# so that the nominal kernel above is exactly the nominal one (and compiles as fast), and the
+# larger effect equations are compiled, inlined, only when an augmented model is first used.
+EFFECT_MODEL_IDS = (100, 101)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _evaluate_effects(model_id, x, u, th, c, dx, y):
+    if model_id == 100:
+        evaluate_htls_effects(x, u, th, c, dx, y)
+    else:
+        evaluate_lths_effects(x, u, th, c, dx, y)
+
+
+@njit(cache=True, error_model="numpy")
+def _integrate_one_effects(model_id, th, consts, inputs, x0, h, n_sub, out):
+    """``_integrate_one`` for an augmented model: the same RK4 arithmetic, written with one
+    call site of the inlined right-hand side (inlined at four call sites like the nominal
+    kernel, the larger effect equations take minutes to compile; called, not inlined, they
+    cost ~60 ns more per evaluation)."""
+    n_x = x0.shape[0]
+    x = x0.copy()
+    xt = np.empty(n_x)
+    stages = np.empty((4, n_x))
+    scratch = np.empty(out.shape[1])
+    n_samples = inputs.shape[0]
+    for k in range(n_samples):
+        u = inputs[k]
+        last = k == n_samples - 1
+        for sub in range(n_sub):
+            for stage in range(4):
+                if stage == 0:
+                    for i in range(n_x):
+                        xt[i] = x[i]
+                elif stage < 3:
+                    for i in range(n_x):
+                        xt[i] = x[i] + 0.5 * h * stages[stage - 1, i]
+                else:
+                    for i in range(n_x):
+                        xt[i] = x[i] + h * stages[2, i]
+                # outputs at t_k and the first RK4 stage of the next interval share one evaluation
+                target = out[k] if sub == 0 and stage == 0 else scratch
+                _evaluate_effects(model_id, xt, u, th, consts, stages[stage], target)
+                if last:
+                    break
+            if last:
+                break
+            for i in range(n_x):
+                x[i] += h / 6.0 * (stages[0, i] + 2.0 * stages[1, i] + 2.0 * stages[2, i] + stages[3, i])
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _integrate_batch_effects(model_id, thetas, consts, inputs, x0, h, n_sub, out):
+    """``_integrate_batch`` for an augmented model."""
+    for s in prange(thetas.shape[0]):
+        _integrate_one_effects(model_id, thetas[s], consts, inputs, x0, h, n_sub, out[s])
 
 
 def substeps(model: Model, dt: float, step: float | None = None) -> tuple[int, float]:
@@ -129,9 +189,17 @@ def simulate_batch(
     consts = model.constants_vector() if constants is None else np.ascontiguousarray(constants, dtype=np.float64)
     if consts.shape != (len(model.constants),):
         raise SimulationError(f"constants have shape {consts.shape}; expected ({len(model.constants)},)")
+    if model.batch_simulator is not None:  # a concept with its own kernel (EMPS: discrete controller)
+        out = model.batch_simulator(model, thetas, inputs, model.kernel_constants(consts), x0, dt, n_sub)
+        if model.postprocess is not None:
+            out = model.postprocess(model, thetas, time, out)
+        return out[0] if single else out
     x0 = np.zeros(model.n_states) if x0 is None else np.ascontiguousarray(x0, dtype=np.float64)
     out = np.empty((thetas.shape[0], time.size, model.n_outputs))
-    _integrate_batch(model.model_id, thetas, model.kernel_constants(consts), inputs, x0, h, n_sub, out)
+    kernel = _integrate_batch_effects if model.model_id in EFFECT_MODEL_IDS else _integrate_batch
+    kernel(model.model_id, thetas, model.kernel_constants(consts), inputs, x0, h, n_sub, out)
+    if model.postprocess is not None:  # output-side effects (sensor delay), batched in numpy
+        out = model.postprocess(model, thetas, time, out)
     return out[0] if single else out
 
 

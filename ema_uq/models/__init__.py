@@ -2,9 +2,10 @@
 from __future__ import annotations
 
 from .base import INPUTS, REQUIRED_INPUTS, Model
-from . import htls, lths
+from . import emps, htls, lths
 
-_REGISTRY: dict[str, Model] = {htls.MODEL.name: htls.MODEL, lths.MODEL.name: lths.MODEL}
+_REGISTRY: dict[str, Model] = {htls.MODEL.name: htls.MODEL, lths.MODEL.name: lths.MODEL,
+                               emps.MODEL.name: emps.MODEL}
 
 
 class UnknownConceptError(ValueError):

@@ -6,8 +6,8 @@ only carries names, units, layouts and defaults so that numerics stay array-base
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Callable
+from dataclasses import dataclass, field
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -17,7 +17,8 @@ from ..params import ParameterError, ParameterSet
 #: data files (absent = released, as in every rig identification run).
 INPUTS = ("phi_r", "F_ER1", "F_ER2", "brake")
 REQUIRED_INPUTS = ("phi_r", "F_ER1", "F_ER2")
-INPUT_UNITS = {"phi_r": "rad", "F_ER1": "N", "F_ER2": "N", "brake": "1"}
+INPUT_UNITS = {"phi_r": "rad", "F_ER1": "N", "F_ER2": "N", "brake": "1",
+               "qg": "m", "pulse": "V"}  # qg, pulse: EMPS (reference position, drive pulse)
 
 
 @dataclass(frozen=True)
@@ -48,6 +49,69 @@ class Model:
     derive: Callable[[np.ndarray], np.ndarray]
     inputs: tuple[str, ...] = INPUTS
     required_inputs: tuple[str, ...] = REQUIRED_INPUTS
+    #: a concept with its own compiled simulator (e.g. a discrete controller around a
+    #: continuous plant) sets this; ``simulate_batch`` then calls
+    #: ``batch_simulator(model, thetas, inputs, kernel_constants, x0, dt, n_sub)``.
+    batch_simulator: Callable | None = None
+    #: unmodelled effects (models/effects.py): the active effects of this model object,
+    #: the effects the concept supports (name -> Effect), the concept's builder of augmented
+    #: models ``augment(model, names, values) -> Model``, an optional output post-processing
+    #: step ``postprocess(model, thetas, time, out) -> out`` run by ``simulate_batch`` after
+    #: the kernel, and the nominal model an augmented one was built from.
+    effects: tuple[str, ...] = ()
+    effect_catalogue: Mapping[str, Any] = field(default_factory=dict, compare=False, repr=False)
+    augment: Callable | None = field(default=None, compare=False, repr=False)
+    postprocess: Callable | None = field(default=None, compare=False, repr=False)
+    built_from: "Model | None" = field(default=None, compare=False, repr=False)
+
+    # --- unmodelled effects ---------------------------------------------------------
+    @property
+    def base_model(self) -> "Model":
+        """The nominal model this one was built from (``self`` for a nominal model)."""
+        return self if self.built_from is None else self.built_from
+
+    @property
+    def available_effects(self) -> tuple[str, ...]:
+        """Names of the effects ``with_effects`` accepts for this concept."""
+        return tuple(self.base_model.effect_catalogue)
+
+    def with_effects(self, names: Sequence[str], values: Mapping[str, float] | None = None) -> "Model":
+        """The model with the named effects switched on (``self`` for an empty list).
+
+        Parameters are the nominal ones followed by each effect's (in ``names`` order) with the
+        effect's nominal values, overridden by ``values`` (full parameter names, e.g.
+        ``backlash_delta``). On an augmented model the new effects join the active ones (their
+        current values kept). Unknown, unavailable or repeated names are a one-line ``ParameterError``.
+        """
+        if isinstance(names, str):
+            names = (names,)
+        names = tuple(names)
+        values = dict(values or {})
+        if not names:
+            if values:
+                raise ParameterError("effect values given without effects; name the effects to switch on")
+            return self
+        base = self.base_model
+        if self.effects:  # compose: rebuild from the nominal model, keeping current effect values
+            current = {n: p.nominal for n, p in zip(self.parameters.names, self.parameters)
+                       if n not in base.parameters}
+            return base.with_effects(self.effects + names, {**current, **values})
+        available = self.available_effects
+        unknown = [n for n in names if n not in available]
+        if unknown:
+            raise ParameterError(f"effect {unknown[0]!r} is not available for concept {self.name}; "
+                                 f"available effects: {', '.join(available) or 'none'}")
+        repeated = sorted({n for n in names if names.count(n) > 1})
+        if repeated:
+            raise ParameterError(f"effect {repeated[0]} is named twice; switch each effect on once")
+        allowed = [p.name for n in names for p in self.effect_catalogue[n].parameters]
+        stray = [k for k in values if k not in allowed]
+        if stray:
+            raise ParameterError(f"value for {stray[0]!r} does not belong to effect(s) {', '.join(names)}; "
+                                 f"their parameters: {', '.join(allowed)}")
+        if self.augment is None:
+            raise ParameterError(f"concept {self.name} cannot add effects (no augment function)")
+        return self.augment(self, names, values)
 
     @property
     def n_states(self) -> int:

@@ -7,12 +7,14 @@ The integer layouts below are the kernel's contract and must match the Parameter
 from __future__ import annotations
 
 import math
+from functools import partial
 
 import numpy as np
 from numba import njit
 
 from ..params import Parameter, ParameterSet
 from .base import Model
+from .effects import CATALOGUE, augment_ema
 from .components import (BRAKE_AND_SETTINGS, DEG, brake_torque, const, loss_parameters,
                          rig_gain, screw_constants, smooth_sign, station_torques)
 
@@ -71,6 +73,13 @@ MODEL = Model(
     name="htls", model_id=0, title="HT/LS (high torque / low speed)",
     states=STATES, outputs=OUTPUTS, output_units=OUTPUT_UNITS,
     parameters=PARAMETERS, constants=CONSTANTS, derive=derived_constants, integration_step=5e-4,
+    effect_catalogue=CATALOGUE, augment=partial(
+        augment_ema, model_id=100,  # effect_kernels.evaluate_htls_effects
+        extra_states={"backlash": ("backlash_b1", "backlash_b2"), "shaft_compliance": ("shaft_twist", "shaft_twist_rate")},
+        # play relaxation [s] and clamp softness, load inertia fraction, fastest resolved
+        # torsional mode (1/step) [rad/s], ripple periods per motor revolution
+        effect_constants={"backlash_relaxation": 2e-3, "backlash_softness": 0.05, "load_fraction": 0.5,
+                          "mode_omega_max": 1.0 / 5e-4, "ripple_periods": 6.0}),
 )
 
 

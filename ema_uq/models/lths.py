@@ -6,12 +6,14 @@ the first bevel gear; station 1 hangs on it directly, station 2 through a second
 from __future__ import annotations
 
 import math
+from functools import partial
 
 import numpy as np
 from numba import njit
 
 from ..params import Parameter, ParameterSet
 from .base import Model
+from .effects import CATALOGUE, augment_ema
 from .components import (BRAKE_AND_SETTINGS, DEG, brake_torque, const, loss_parameters,
                          rig_gain, screw_constants, smooth_sign, station_torques)
 
@@ -76,6 +78,13 @@ MODEL = Model(
     name="lths", model_id=1, title="LT/HS (low torque / high speed)",
     states=STATES, outputs=OUTPUTS, output_units=OUTPUT_UNITS,
     parameters=PARAMETERS, constants=CONSTANTS, derive=derived_constants, integration_step=2e-4,
+    effect_catalogue=CATALOGUE, augment=partial(
+        augment_ema, model_id=101,  # effect_kernels.evaluate_lths_effects
+        extra_states={"backlash": ("backlash_b",), "shaft_compliance": ("shaft_twist", "shaft_twist_rate")},
+        # play relaxation [s] and clamp softness, load inertia fraction, fastest resolved
+        # torsional mode (1/step) [rad/s], ripple periods per motor revolution
+        effect_constants={"backlash_relaxation": 1e-3, "backlash_softness": 0.05, "load_fraction": 0.3,
+                          "mode_omega_max": 1.0 / 2e-4, "ripple_periods": 4.0}),
 )
 
 

@@ -1,0 +1,340 @@
+"""The sim-to-real catalogue: unmodelled effects that can be switched into a concept.
+
+Each :class:`Effect` names a piece of physics the nominal models of MODEL_SPEC.md leave out,
+its few parameters (prefixed with the effect name, physical bounds, ``nominal`` = a typical
+rig magnitude), where an ML refit should start them (``start``: small, not degenerate) and
+the values at which the effect vanishes exactly (``off``). ``Model.with_effects(names)``
+returns the augmented model: the nominal parameters followed by each effect's parameters,
+extra states where the physics needs them, the same outputs, its own ``model_id``.
+
+The kernels (``effect_kernels.py``) reduce to the nominal arithmetic at the ``off`` values,
+so an augmented model with its effects off reproduces the nominal outputs to the last bit
+(``sensor_delay`` is an output post-processing step, skipped at tau = 0).
+
+Physics of the seven MODEL_SPEC effects on HT/LS and LT/HS (all angles and speeds that are
+"referred to the screw" are those of the ball-screw shaft, so one value means the same
+carriage motion in both concepts; r tanγ converts them to carriage metres):
+
+``backlash``
+    Total play 2δ in the gear stage ahead of each screw (HT/LS: each bevel gear; LT/HS: the
+    first bevel gear, ahead of both stations), δ referred to the screw [rad]. One state per
+    play: the drive-side travel b inside the play (motor-shaft radians). While the drive
+    crosses the play after a motion reversal the load side stands still and no load torque
+    reaches the motor (kinematic play operator, the load held by its friction). The play is
+    a tanh-smoothed clamp of width 0.05 δ; b relaxes onto the contact flank with a 2 ms time
+    constant so the equations stay non-stiff for the fixed-step RK4.
+``stribeck``
+    Every Coulomb term C sgn(v) becomes C (1 + ρ exp(-(v/v_s)²)) sgn(v), i.e.
+    C_s = (1 + ρ) C, with v the speed of that shaft referred to the screw; parameters
+    ρ = C_s/C - 1 [1] and v_s [rad/s].
+``shaft_compliance``
+    A torsional spring and damper between the motor (+ magnetic gear) and the rest of the
+    drive train (HT/LS: motor shaft; LT/HS: the input shaft, where eq. 22 puts D_IS - here
+    acting on the shaft's twist, the printed D_IS θ_MG term stays a zero design constant).
+    J splits into motor and load inertia by a fixed load fraction (HT/LS 0.5, LT/HS 0.3).
+    Parameters: the period T of the torsional mode [s] (k = J_red (2π/T)², rigid at T = 0)
+    and its damping ratio ζ [1] (d = 2 ζ (2π/T) J_red). Two states: twist q and twist rate
+    (modal form; the original Ω state becomes the centre-of-inertia speed, so the rigid
+    model is recovered exactly). Periods shorter than the integrator can resolve
+    (T < 2π h) keep the mode at 2π h and scale its participation by T / (2π h).
+``ujoint_kinematics``
+    Exact U-joint speed factor of eq. 8, g = cosβ / (1 - sin²β cos²(θ_TP + φ)), with the
+    design angles β1, β2 and θ_TP = the screw-shaft angle: Ω_U = g_U Ω_TP and the U-joint
+    passes g_U M_TSER / cosβ back (ideal joint: torque ratio = speed ratio). Ripple at twice
+    the shaft rotation. Parameters: ripple scale a with g_U = 1 + a (g - 1) [1] (a = 1: the
+    design angles; a > 1: a rig joint working at a larger angle than designed) and the yoke
+    phase φ at θ = 0 [rad].
+``load_dependent_friction``
+    Ball-screw Coulomb friction grows with the carried load: C_TS + μ r |F_ER| [μ: 1].
+``sensor_delay``
+    Every measured channel lags the true signal by τ [s] (linear interpolation in time,
+    samples before τ hold the initial value); applied after the kernel.
+``torque_ripple``
+    Motor cogging/ripple torque k_n A sin(n_p θ + φ) added to the motor torque (the current
+    command does not contain it), A as the equivalent armature current [A], n_p fixed per
+    concept (HT/LS 6, LT/HS 4 periods per motor revolution), phase φ [rad].
+
+Nominal magnitudes (one value serves both concepts) are typical rig values chosen so that,
+with 2 % noise, each effect stays visible on deploy-retract at nominal and at half
+magnitude: the noise-normalised excess chi-square N Σ (NRMSE_ch / 0.02)² over the rig
+channels is >= 140 at half magnitude (tests/unit/test_effects.py). Play 2 x 0.02 rad at the
+screw (45 µm of carriage lost motion); C_s = 1.5 C below v_s = 1 rad/s of screw speed
+(1.1 mm/s); a 33 Hz torsional mode with ζ = 0.05; U-joint ripple a = 6, i.e. joints at
+about 2.4 x the design angles (7°, 12°) - at the design angles (a = 1) the ripple changes I_A
+by only 0.14 % NRMSE, below what 2 % noise shows; μ = 0.005 (a ball screw of ~93 %
+efficiency at the rig loads); 12 ms delay; 0.5 A equivalent ripple (~2.5 % of the running
+current).
+
+Caveats for fitting: on deploy-retract much of the shaft-compliance signature is ringing
+excited by the 10 ms reference staircase and sampled in step with it, so the cost is
+multimodal in T (periods dividing 10 ms barely show in steady motion; the start value
+4.4 ms avoids that). Linear interpolation makes the outputs piecewise linear in τ with kinks
+at multiples of the sample time.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Mapping, Sequence
+
+import numpy as np
+
+from ..params import Parameter, ParameterError, ParameterSet
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .base import Model
+
+#: Regimes in which an effect shows in the residuals (for the gap diagnosis).
+SIGNATURES = ("reversal", "low_speed", "high_acceleration", "high_load", "direction", "saturation",
+              "periodic", "delay")
+
+
+class EffectError(ParameterError):
+    """An unknown effect or effect parameter, a duplicate, or an effect a concept lacks."""
+
+
+@dataclass(frozen=True)
+class Effect:
+    """One unmodelled effect: its physics, parameters and how to switch it off.
+
+    ``parameters`` are named ``<effect>_<short>`` (e.g. ``backlash_delta``); ``start`` is
+    where an ML refit of the augmented model starts them; ``off`` makes the effect vanish
+    (an augmented model at ``off`` reproduces the nominal outputs). ``signature`` lists the
+    regimes (:data:`SIGNATURES`) where its residuals show.
+    """
+
+    name: str
+    description: str
+    parameters: tuple[Parameter, ...]
+    start: dict[str, float]
+    off: dict[str, float]
+    signature: tuple[str, ...]
+
+    def __post_init__(self) -> None:
+        names = [p.name for p in self.parameters]
+        for p in self.parameters:
+            if not p.name.startswith(self.name + "_"):
+                raise EffectError(f"effect {self.name}: parameter {p.name} must start with '{self.name}_'")
+        for what, values in (("start", self.start), ("off", self.off)):
+            for key, value in values.items():
+                if key not in names:
+                    raise EffectError(f"effect {self.name}: {what} names unknown parameter {key!r}")
+                p = self.parameters[names.index(key)]
+                if not p.lower <= value <= p.upper:
+                    raise EffectError(f"effect {self.name}: {what} value of {key} = {value:g} lies outside "
+                                      f"[{p.lower:g}, {p.upper:g}]")
+        unknown = [s for s in self.signature if s not in SIGNATURES]
+        if unknown:
+            raise EffectError(f"effect {self.name}: unknown signature regime(s) {', '.join(unknown)}; "
+                              f"use {', '.join(SIGNATURES)}")
+
+    @property
+    def parameter_names(self) -> tuple[str, ...]:
+        return tuple(p.name for p in self.parameters)
+
+    @property
+    def short_names(self) -> tuple[str, ...]:
+        """Parameter names without the ``<effect>_`` prefix (``delta`` for ``backlash_delta``)."""
+        return tuple(p.name[len(self.name) + 1:] for p in self.parameters)
+
+    @property
+    def nominal(self) -> dict[str, float]:
+        return {p.name: p.nominal for p in self.parameters}
+
+    def full_name(self, key: str) -> str:
+        """``delta`` or ``backlash_delta`` -> ``backlash_delta``; anything else is an EffectError."""
+        if key in self.parameter_names:
+            return key
+        if key in self.short_names:
+            return self.parameter_names[self.short_names.index(key)]
+        raise EffectError(f"effect {self.name} has no parameter {key!r}; its parameters are "
+                          f"{', '.join(self.short_names)} (or {', '.join(self.parameter_names)})")
+
+
+def _p(name, unit, nominal, lower, upper, description) -> Parameter:
+    return Parameter(name, unit, nominal, lower, upper, free=True, description=description)
+
+
+TWO_PI = 2.0 * math.pi
+
+#: The seven effects of MODEL_SPEC.md for the EMA concepts (htls, lths), in kernel order.
+CATALOGUE: dict[str, Effect] = {e.name: e for e in (
+    Effect(
+        "backlash",
+        "dead band of total play 2δ in the gear ahead of the screw(s): after a motion reversal the "
+        "drive crosses the play with the carriage standing and no load torque transmitted",
+        (_p("backlash_delta", "rad", 0.02, 0.0, 1.0,
+            "half play of the gear stage, referred to the screw shaft (carriage lost motion 2δ r tanγ)"),),
+        start={"backlash_delta": 0.002}, off={"backlash_delta": 0.0},
+        signature=("reversal", "direction", "low_speed")),
+    Effect(
+        "stribeck",
+        "Coulomb friction rising near zero speed: C(v) = C (1 + ρ exp(-(v/v_s)²)) on every Coulomb term",
+        (_p("stribeck_ratio", "1", 0.5, 0.0, 20.0, "breakaway excess C_s/C - 1 of every Coulomb term"),
+         _p("stribeck_speed", "rad/s", 1.0, 1e-3, 100.0, "Stribeck speed v_s, referred to the screw shaft")),
+        start={"stribeck_ratio": 0.05, "stribeck_speed": 1.0},
+        off={"stribeck_ratio": 0.0, "stribeck_speed": 1.0},
+        signature=("low_speed", "reversal")),
+    Effect(
+        "shaft_compliance",
+        "torsional spring and damper between motor and drive train (two-inertia mode of period T, "
+        "damping ratio ζ)",
+        (_p("shaft_compliance_period", "s", 0.03, 0.0, 1.0,
+            "period 2π/ω_n of the torsional mode (stiffness k = J_red ω_n², rigid at 0)"),
+         _p("shaft_compliance_zeta", "1", 0.05, 1e-3, 5.0, "damping ratio of the torsional mode")),
+        start={"shaft_compliance_period": 0.0044, "shaft_compliance_zeta": 0.05},
+        off={"shaft_compliance_period": 0.0, "shaft_compliance_zeta": 0.05},
+        signature=("high_acceleration", "reversal", "periodic")),
+    Effect(
+        "ujoint_kinematics",
+        "exact U-joint speed factor g_U(θ) of eq. 8: speed and torque ripple at twice the shaft rotation",
+        (_p("ujoint_kinematics_scale", "1", 6.0, 0.0, 100.0,
+            "ripple scale a: g_U = 1 + a (g_eq8 - 1); 1 = the design joint angles"),
+         _p("ujoint_kinematics_phase", "rad", 0.0, -TWO_PI, TWO_PI, "yoke phase of the U-joints at θ = 0")),
+        start={"ujoint_kinematics_scale": 0.1, "ujoint_kinematics_phase": 0.0},
+        off={"ujoint_kinematics_scale": 0.0, "ujoint_kinematics_phase": 0.0},
+        signature=("periodic", "high_load")),
+    Effect(
+        "load_dependent_friction",
+        "ball-screw Coulomb friction growing with the carried load: C_TS + μ r |F_ER|",
+        (_p("load_dependent_friction_mu", "1", 0.005, 0.0, 0.5, "load coefficient μ of the ball-screw friction"),),
+        start={"load_dependent_friction_mu": 2.5e-4}, off={"load_dependent_friction_mu": 0.0},
+        signature=("high_load", "direction")),
+    Effect(
+        "sensor_delay",
+        "every measured channel lags the true signal by τ",
+        (_p("sensor_delay_tau", "s", 0.012, 0.0, 0.5, "delay of the measured channels"),),
+        start={"sensor_delay_tau": 0.001}, off={"sensor_delay_tau": 0.0},
+        signature=("delay", "high_acceleration")),
+    Effect(
+        "torque_ripple",
+        "motor cogging / torque ripple k_n A sin(n_p θ + φ), periodic in the motor angle",
+        (_p("torque_ripple_amplitude", "A", 0.5, 0.0, 100.0,
+            "ripple torque amplitude as an equivalent armature current (torque k_n A)"),
+         _p("torque_ripple_phase", "rad", 0.0, -TWO_PI, TWO_PI, "ripple phase at θ = 0")),
+        start={"torque_ripple_amplitude": 0.05, "torque_ripple_phase": 0.0},
+        off={"torque_ripple_amplitude": 0.0, "torque_ripple_phase": 0.0},
+        signature=("periodic", "low_speed")),
+)}
+
+#: Kernel order of the catalogue effects (the layout table of the augmented kernels).
+EFFECT_ORDER: tuple[str, ...] = tuple(CATALOGUE)
+
+
+def parse_effect(text: str, catalogue: Mapping[str, Effect] | None = None) -> tuple[str, dict[str, float]]:
+    """``"NAME[:param=value,...]"`` -> (name, {full parameter name: value}).
+
+    Parameters may be given by short (``delta``) or full (``backlash_delta``) name. An unknown
+    effect or parameter, a malformed item or a non-number is a one-line :class:`EffectError`
+    naming the valid choices. ``catalogue`` defaults to :data:`CATALOGUE`.
+    """
+    catalogue = CATALOGUE if catalogue is None else catalogue
+    name, _, rest = str(text).partition(":")
+    name = name.strip()
+    if not name:
+        raise EffectError(f"cannot read effect {text!r}: write NAME[:param=value,...], e.g. backlash:delta=0.02")
+    if name not in catalogue:
+        raise EffectError(f"unknown effect {name!r}; the catalogue has: {', '.join(catalogue)}")
+    effect = catalogue[name]
+    values: dict[str, float] = {}
+    for item in filter(None, (s.strip() for s in rest.split(","))):
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise EffectError(f"cannot read effect {text!r} at {item!r}: write NAME[:param=value,...], "
+                              f"e.g. {name}:{effect.short_names[0]}={effect.parameters[0].nominal:g}")
+        full = effect.full_name(key.strip())
+        try:
+            number = float(value)
+        except ValueError:
+            raise EffectError(f"cannot read effect {text!r} at {item!r}: {value.strip()!r} is not a number") from None
+        if not math.isfinite(number):
+            raise EffectError(f"effect {name}: {full} = {value.strip()} is not finite; give a finite number")
+        values[full] = number
+    return name, values
+
+
+def effect_parameters(names: Sequence[str], catalogue: Mapping[str, Effect] | None = None) -> ParameterSet:
+    """The parameters of the named effects, in that order."""
+    catalogue = CATALOGUE if catalogue is None else catalogue
+    return ParameterSet(tuple(p for n in names for p in catalogue[n].parameters))
+
+
+# --------------------------------------------------------------------------------------
+# augmentation of the EMA concepts (htls, lths); EMPS brings its own augment function
+# --------------------------------------------------------------------------------------
+#: Kernel layout appended to the augmented model's derived constants: for each effect of
+#: EFFECT_ORDER, the position of its first parameter in theta and of its first extra state
+#: in x (-1 when absent), then the concept's effect constants (:data:`EFFECT_CONSTANT_NAMES`).
+LAYOUT_SIZE = 2 * len(EFFECT_ORDER)
+EFFECT_CONSTANT_NAMES = ("backlash_relaxation", "backlash_softness", "load_fraction", "mode_omega_max",
+                         "ripple_periods")
+
+
+def augment_ema(model: "Model", names: tuple[str, ...], values: dict[str, float], *, model_id: int,
+                extra_states: Mapping[str, tuple[str, ...]], effect_constants: Mapping[str, float]) -> "Model":
+    """The augmented HT/LS or LT/HS model (``Model.augment`` of those concepts, bound by
+    ``functools.partial`` in the concept module to its kernel id, state names and constants).
+
+    ``names`` are catalogue effects (checked by ``Model.with_effects``); ``values`` override
+    effect nominal values (full names). The kernel reads the layout from the derived constants.
+    """
+    layout = np.full(LAYOUT_SIZE, -1.0)
+    n_params = len(model.parameters)
+    states = list(model.states)
+    for name in names:
+        k = EFFECT_ORDER.index(name)
+        layout[2 * k] = n_params
+        n_params += len(CATALOGUE[name].parameters)
+        if extra_states.get(name):
+            layout[2 * k + 1] = len(states)
+            states.extend(extra_states[name])
+    tail = np.concatenate([layout, [float(effect_constants[c]) for c in EFFECT_CONSTANT_NAMES]])
+    derive = _DeriveWithLayout(model.derive, tuple(tail))
+    parameters = model.parameters + effect_parameters(names)
+    if values:
+        given = parameters.vector(values)  # unknown names raise here
+        parameters.check_within_bounds(given, what="effect value")
+        parameters = parameters.with_nominal(values)
+    postprocess = delay_outputs if "sensor_delay" in names else None
+    return replace(model, model_id=model_id, title=f"{model.title} + {' + '.join(names)}",
+                   states=tuple(states), parameters=parameters, derive=derive, effects=tuple(names),
+                   postprocess=postprocess, built_from=model)
+
+
+@dataclass(frozen=True)
+class _DeriveWithLayout:
+    """``Model.derive`` of an augmented model: the concept's derived constants followed by the
+    effect layout table (a picklable, comparable object rather than a closure)."""
+
+    base: object
+    tail: tuple[float, ...]
+
+    def __call__(self, c: np.ndarray) -> np.ndarray:
+        return np.concatenate([self.base(c), np.asarray(self.tail, dtype=np.float64)])
+
+
+def delay_outputs(model: "Model", thetas: np.ndarray, time: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """``sensor_delay``: every channel of set s lags by tau_s (linear interpolation between
+    samples; samples with t < tau hold the first value). thetas (n_sets, n_params), out
+    (n_sets, n_samples, n_outputs), modified in place and returned. tau = 0 leaves a set untouched."""
+    taus = thetas[:, model.parameters.index("sensor_delay_tau")]
+    dt = float(time[1] - time[0])
+    n = out.shape[1]
+    k = np.arange(n)
+    for s, tau in enumerate(taus):
+        if tau == 0.0:
+            continue
+        lag = tau / dt
+        whole = int(math.floor(lag))
+        frac = lag - whole
+        src = k - lag  # fractional sample index of t_k - tau
+        i0 = np.clip(k - whole, 0, n - 1)      # sample at or after t_k - tau
+        i1 = np.clip(k - whole - 1, 0, n - 1)  # sample before it
+        delayed = (1.0 - frac) * out[s, i0] + frac * out[s, i1]
+        delayed[src <= 0.0] = out[s, 0]
+        out[s] = delayed
+    return out
+
+
+__all__ = ["CATALOGUE", "EFFECT_ORDER", "Effect", "EffectError", "SIGNATURES", "augment_ema", "delay_outputs",
+           "effect_parameters", "parse_effect"]

@@ -1,0 +1,483 @@
+"""The unmodelled-effect catalogue (ema_uq/models/effects.py) switched into HT/LS and LT/HS.
+
+Checks: the API (catalogue, with_effects, parse_effect, one-line errors); every effect at its
+``off`` values reproduces the nominal outputs bit for bit; the nominal models still match a
+plain RK4 loop written here (the dispatch to the augmented kernels left them untouched);
+each effect at nominal and half magnitude changes the rig channels clearly and in its own
+regime, against analytic expectations (lost motion of the play, eq. 8, Stribeck and
+load-dependent friction formulas, delay by interpolation, ripple frequencies, the two-inertia
+mode of an independent linear model); batched == single; ``ema-uq simulate --effect``.
+"""
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from numba import njit
+
+from ema_uq import ParameterError, deploy_retract, get_model, io, simulate_batch, synthesize
+from ema_uq.models import htls, lths
+from ema_uq.models.effect_kernels import evaluate_htls_effects, evaluate_lths_effects
+from ema_uq.models.effects import CATALOGUE, Effect, EffectError, SIGNATURES, delay_outputs, parse_effect
+
+DEG = math.pi / 180.0
+LEAD = 0.016 * math.tan(4 * DEG)  # m of carriage per screw radian
+SPEC_EFFECTS = ("backlash", "stribeck", "shaft_compliance", "ujoint_kinematics", "load_dependent_friction",
+                "sensor_delay", "torque_ripple")
+#: the parameter that sets each effect's magnitude (halved for the "half" case)
+MAGNITUDE = {"backlash": "backlash_delta", "stribeck": "stribeck_ratio", "shaft_compliance": "shaft_compliance_period",
+             "ujoint_kinematics": "ujoint_kinematics_scale", "load_dependent_friction": "load_dependent_friction_mu",
+             "sensor_delay": "sensor_delay_tau", "torque_ripple": "torque_ripple_amplitude"}
+NOISE = 0.02  # fraction of channel RMS, MODEL_SPEC "hypothetical data"
+
+
+@pytest.fixture(scope="module")
+def experiment():
+    return deploy_retract()
+
+
+@pytest.fixture(scope="module")
+def nominal_runs(experiment):
+    """Nominal outputs of both concepts on deploy-retract."""
+    out = {}
+    for concept in ("htls", "lths"):
+        m = get_model(concept)
+        out[concept] = simulate_batch(m, m.parameters.nominal, experiment.time, experiment.input_matrix(m))
+    return out
+
+
+def runs(model, thetas, experiment):
+    return simulate_batch(model, np.atleast_2d(thetas), experiment.time, experiment.input_matrix(model))
+
+
+def column(concept, channel):
+    return get_model(concept).outputs.index(channel)
+
+
+# --- API ------------------------------------------------------------------------------------
+def test_catalogue_is_the_model_spec_table():
+    assert tuple(CATALOGUE) == SPEC_EFFECTS
+    for name, effect in CATALOGUE.items():
+        assert isinstance(effect, Effect) and effect.name == name and effect.description
+        assert 1 <= len(effect.parameters) <= 2
+        assert all(p.name.startswith(name + "_") and p.free for p in effect.parameters)
+        assert set(effect.start) == set(effect.off) == set(effect.parameter_names)
+        for p in effect.parameters:
+            assert p.lower <= effect.off[p.name] <= p.upper and p.lower <= effect.start[p.name] <= p.upper
+        # the start sits near off but not on it
+        magnitude = MAGNITUDE[name]
+        assert effect.off[magnitude] == 0.0 < effect.start[magnitude] < effect.nominal[magnitude]
+        assert effect.signature and set(effect.signature) <= set(SIGNATURES)
+    for concept in ("htls", "lths"):
+        assert get_model(concept).available_effects == SPEC_EFFECTS
+
+
+@pytest.mark.parametrize("concept, extra_states", [
+    ("htls", {"backlash": 2, "shaft_compliance": 2}), ("lths", {"backlash": 1, "shaft_compliance": 2})])
+def test_with_effects_layout(concept, extra_states):
+    base = get_model(concept)
+    assert base.with_effects([]) is base and base.base_model is base and base.effects == ()
+    names = ["torque_ripple", "backlash", "shaft_compliance"]
+    aug = base.with_effects(names, {"backlash_delta": 0.03})
+    assert aug.effects == tuple(names) and aug.base_model is base and aug.name == base.name
+    assert aug.model_id not in (0, 1, 2)
+    assert aug.outputs == base.outputs and aug.output_units == base.output_units
+    assert aug.states[:base.n_states] == base.states
+    assert aug.n_states == base.n_states + sum(extra_states.values())
+    expected = base.parameters.names + tuple(n for e in names for n in CATALOGUE[e].parameter_names)
+    assert aug.parameters.names == expected
+    assert aug.parameters["backlash_delta"].nominal == 0.03
+    assert aug.parameters["torque_ripple_amplitude"].nominal == CATALOGUE["torque_ripple"].nominal[
+        "torque_ripple_amplitude"]
+    np.testing.assert_array_equal(aug.parameters.nominal[:len(base.parameters)], base.parameters.nominal)
+    # composing keeps the active effects and their current values
+    more = aug.with_effects(["sensor_delay"])
+    assert more.effects == tuple(names) + ("sensor_delay",) and more.parameters["backlash_delta"].nominal == 0.03
+    assert more.base_model is base
+    # --set reaches effect parameters
+    params, consts = aug.split_assignments({"backlash_delta": 0.01, "r": 0.02})
+    assert params == {"backlash_delta": 0.01} and consts == {"r": 0.02}
+
+
+@pytest.mark.parametrize("names, values, fragments", [
+    (["friction"], None, ("effect 'friction' is not available for concept htls", "backlash", "torque_ripple")),
+    (["backlash", "backlash"], None, ("backlash is named twice",)),
+    (["backlash"], {"stribeck_ratio": 1.0}, ("'stribeck_ratio' does not belong", "backlash_delta")),
+    (["backlash"], {"backlash_delta": -0.1}, ("backlash_delta = -0.1 lies outside its bounds",)),
+    ([], {"backlash_delta": 0.1}, ("effect values given without effects",)),
+])
+def test_with_effects_errors_are_one_line(names, values, fragments):
+    with pytest.raises(ParameterError) as info:
+        get_model("htls").with_effects(names, values)
+    message = str(info.value)
+    assert "\n" not in message
+    for fragment in fragments:
+        assert fragment in message
+
+
+def test_parse_effect():
+    assert parse_effect("backlash") == ("backlash", {})
+    assert parse_effect("backlash:delta=0.01") == ("backlash", {"backlash_delta": 0.01})
+    assert parse_effect(" stribeck : ratio=2, stribeck_speed=0.5 ") == (
+        "stribeck", {"stribeck_ratio": 2.0, "stribeck_speed": 0.5})
+    for text, fragments in [
+        ("gears:delta=1", ("unknown effect 'gears'", "backlash, stribeck")),
+        ("backlash:gap=1", ("effect backlash has no parameter 'gap'", "delta", "backlash_delta")),
+        ("backlash:delta", ("cannot read effect", "backlash:delta=")),
+        ("backlash:delta=wide", ("'wide' is not a number",)),
+        ("backlash:delta=nan", ("not finite",)),
+        (":delta=1", ("cannot read effect",)),
+    ]:
+        with pytest.raises(EffectError) as info:
+            parse_effect(text)
+        assert isinstance(info.value, ParameterError) and "\n" not in str(info.value)
+        for fragment in fragments:
+            assert fragment in str(info.value), (text, str(info.value))
+
+
+# --- exactness ------------------------------------------------------------------------------
+@pytest.mark.parametrize("concept", ["htls", "lths"])
+def test_effects_at_off_reproduce_nominal_bit_for_bit(concept, experiment, nominal_runs):
+    base = get_model(concept)
+    for name, effect in CATALOGUE.items():
+        aug = base.with_effects([name])
+        np.testing.assert_array_equal(runs(aug, aug.parameters.vector(effect.off), experiment)[0],
+                                      nominal_runs[concept], err_msg=name)
+    everything = base.with_effects(list(CATALOGUE))
+    off = everything.parameters.vector({k: v for e in CATALOGUE.values() for k, v in e.off.items()})
+    np.testing.assert_array_equal(runs(everything, off, experiment)[0], nominal_runs[concept])
+
+
+@njit(cache=True)
+def _plain_rk4(concept_id, th, c, inputs, x0, h, n_sub, n_outputs):
+    """A plain RK4 loop over the nominal evaluate functions (the pre-effects kernel's arithmetic)."""
+    n = inputs.shape[0]
+    out = np.empty((n, n_outputs))
+    x = x0.copy()
+    k1 = np.empty_like(x)
+    k2 = np.empty_like(x)
+    k3 = np.empty_like(x)
+    k4 = np.empty_like(x)
+    y = np.empty(n_outputs)
+    for k in range(n):
+        u = inputs[k]
+        for sub in range(n_sub):
+            if concept_id == 0:
+                htls.evaluate(x, u, th, c, k1, y)
+            else:
+                lths.evaluate(x, u, th, c, k1, y)
+            if sub == 0:
+                out[k] = y
+                if k == n - 1:
+                    return out
+            xt = x + 0.5 * h * k1
+            if concept_id == 0:
+                htls.evaluate(xt, u, th, c, k2, y)
+            else:
+                lths.evaluate(xt, u, th, c, k2, y)
+            xt = x + 0.5 * h * k2
+            if concept_id == 0:
+                htls.evaluate(xt, u, th, c, k3, y)
+            else:
+                lths.evaluate(xt, u, th, c, k3, y)
+            xt = x + h * k3
+            if concept_id == 0:
+                htls.evaluate(xt, u, th, c, k4, y)
+            else:
+                lths.evaluate(xt, u, th, c, k4, y)
+            for i in range(x.size):
+                x[i] += h / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
+    return out
+
+
+@pytest.mark.parametrize("concept", ["htls", "lths"])
+def test_nominal_outputs_unchanged_by_the_effect_dispatch(concept, experiment, nominal_runs):
+    m = get_model(concept)
+    n_sub = int(round(experiment.dt / m.integration_step))
+    plain = _plain_rk4(m.model_id, m.parameters.nominal, m.kernel_constants(), experiment.input_matrix(m),
+                       np.zeros(m.n_states), experiment.dt / n_sub, n_sub, m.n_outputs)
+    np.testing.assert_array_equal(nominal_runs[concept], plain)
+
+
+# --- each effect visible, at nominal and half magnitude -------------------------------------
+@pytest.mark.parametrize("concept", ["htls", "lths"])
+def test_each_effect_is_visible_through_2_percent_noise(concept, experiment, nominal_runs):
+    """Noise-normalised excess chi-square N sum_ch (NRMSE_ch / 0.02)^2 over the rig channels
+    is >= 100 at half magnitude (clearly above the chi-square spread of a few tens)."""
+    base = get_model(concept)
+    rig = [c for c in ("Omega", "y1", "y2", "I_A", "U_A") if c in base.outputs]
+    idx = base.output_index(rig)
+    nominal = nominal_runs[concept][:, idx]
+    rms = np.sqrt(np.mean(nominal ** 2, axis=0))
+    for name in CATALOGUE:
+        aug = base.with_effects([name])
+        thetas = np.tile(aug.parameters.nominal, (2, 1))
+        thetas[1, aug.parameters.index(MAGNITUDE[name])] *= 0.5
+        out = runs(aug, thetas, experiment)[:, :, idx]
+        nrmse = np.sqrt(np.mean((out - nominal) ** 2, axis=1)) / rms
+        excess = experiment.n_samples * np.sum((nrmse / NOISE) ** 2, axis=1)
+        assert excess.min() >= 100.0, (name, excess)
+        assert np.all(nrmse < 0.5), (name, nrmse)  # an effect, not a different machine
+
+
+@pytest.mark.parametrize("concept", ["htls", "lths"])
+def test_backlash_carriage_stands_while_the_drive_crosses_the_play(concept, experiment, nominal_runs):
+    base = get_model(concept)
+    delta = 0.02
+    aug = base.with_effects(["backlash"], {"backlash_delta": delta})
+    out = runs(aug, aug.parameters.nominal, experiment)[0]
+    nom = nominal_runs[concept]
+    t = experiment.time
+    omega, omega_tp1 = out[:, column(concept, "Omega")], out[:, column(concept, "Omega_TP1")]
+    # after the reversal at 24 s the motor turns while the screw stands (the play is crossed)
+    after = (t > 24.0) & (t < 24.5)
+    crossing = after & (np.abs(omega) > 0.3) & (np.abs(omega_tp1) < 1e-2)
+    assert crossing.sum() >= 2
+    # ... so the carriage falls behind by at least the lost motion 2 delta r tan(gamma)
+    lag = out[:, column(concept, "y1")] - nom[:, column(concept, "y1")]
+    lost_motion = 2 * delta * LEAD
+    assert lag[after].max() >= 0.95 * lost_motion
+    assert lag[after].max() <= 2.5 * lost_motion
+    assert np.abs(lag[(t > 20.0) & (t < 24.0)]).max() < 0.05 * lost_motion  # no lag before the reversal
+    # ... and the load torque does not reach the motor meanwhile
+    m_load = out[:, column(concept, "M_TPER1" if concept == "htls" else "M_TPER")]
+    assert np.abs(m_load[crossing]).max() < 0.05 * np.abs(m_load[after & ~crossing]).max()
+
+
+def _htls_state_and_constants(names, values):
+    aug = get_model("htls").with_effects(names, values)
+    x = np.zeros(aug.n_states)
+    x[:4] = [24.0, 0.05, 0.051, 3.7]
+    return aug, x, np.array([0.2, -12000.0, -9500.0, 0.0])
+
+
+@pytest.mark.parametrize("scale, phase, theta", [(1.0, 0.3, 3.7), (6.0, -1.0, 10.2), (0.0, 0.5, 1.0)])
+def test_ujoint_speed_factor_is_eq8(scale, phase, theta):
+    aug, x, u = _htls_state_and_constants(["ujoint_kinematics"], {"ujoint_kinematics_scale": scale,
+                                                                  "ujoint_kinematics_phase": phase})
+    x[3] = theta
+    dx, y = np.empty(aug.n_states), np.empty(aug.n_outputs)
+    evaluate_htls_effects(x, u, aug.parameters.nominal, aug.kernel_constants(), dx, y)
+    out = dict(zip(aug.outputs, y))
+    for k, beta in ((1, 3 * DEG), (2, 5 * DEG)):
+        g = math.cos(beta) / (1 - math.sin(beta) ** 2 * math.cos(theta / 2 + phase) ** 2)  # eq. 8, theta_TP = theta / i_TP
+        assert out[f"Omega_U{k}"] == pytest.approx((1 + scale * (g - 1)) * out[f"Omega_TP{k}"], rel=1e-13)
+        assert dx[k] == pytest.approx(LEAD * out[f"Omega_U{k}"], rel=1e-13)
+
+
+def test_stribeck_and_load_dependent_friction_formulas():
+    aug, x, u = _htls_state_and_constants(["stribeck", "load_dependent_friction"], {
+        "stribeck_ratio": 0.8, "stribeck_speed": 2.0, "load_dependent_friction_mu": 0.004})
+    for speed in (0.3, 1.5, 24.0):  # motor speed; the screw turns at half of it
+        x[0] = speed
+        dx, y = np.empty(aug.n_states), np.empty(aug.n_outputs)
+        evaluate_htls_effects(x, u, aug.parameters.nominal, aug.kernel_constants(), dx, y)
+        out = dict(zip(aug.outputs, y))
+        w = speed / 2.0
+        factor = 1 + 0.8 * math.exp(-(w / 2.0) ** 2)
+        sign = math.tanh(w / 0.05)
+        m_er1 = 0.016 * 12000.0 * math.sin(4 * DEG) * math.cos(4 * DEG)
+        m_tser1 = 0.40 * w + (1.20 + 0.004 * 0.016 * 12000.0) * factor * sign + m_er1
+        assert out["M_TSER1"] == pytest.approx(m_tser1, rel=1e-13)
+        m_uer1 = m_tser1 / math.cos(3 * DEG) + 0.10 * w + 0.30 * factor * sign
+        assert out["M_UER1"] == pytest.approx(m_uer1, rel=1e-13)
+        assert out["M_TPER1"] == pytest.approx(m_uer1 / 2 + 0.20 * w + 0.60 * factor * sign, rel=1e-13)
+
+
+def test_load_dependent_friction_raises_the_steady_current_by_the_extra_torque(experiment, nominal_runs):
+    """In the steady extension before 9 s the speed loop supplies the extra screw friction
+    sum_k mu r |F_ERk| / cos(beta_k) / i_TP as motor torque: Delta I_A = that / k_n."""
+    mu = 0.005
+    aug = get_model("htls").with_effects(["load_dependent_friction"], {"load_dependent_friction_mu": mu})
+    out = runs(aug, aug.parameters.nominal, experiment)[0]
+    t = experiment.time
+    window = (t > 7.0) & (t < 8.9)
+    f1, f2 = (np.abs(experiment.inputs[k][window]) for k in ("F_ER1", "F_ER2"))
+    extra = mu * 0.016 * (f1 / math.cos(3 * DEG) + f2 / math.cos(5 * DEG)) / 2.0
+    delta_i = out[window, 3] - nominal_runs["htls"][window, 3]
+    np.testing.assert_allclose(delta_i, extra / 1.2, rtol=0.03)
+
+
+def test_stribeck_shows_at_low_speed_only(experiment, nominal_runs):
+    aug = get_model("lths").with_effects(["stribeck"])
+    out = runs(aug, aug.parameters.nominal, experiment)[0]
+    screw = np.abs(nominal_runs["lths"][:, column("lths", "Omega_TP1")])
+    delta_i = np.abs(out[:, 3] - nominal_runs["lths"][:, 3])
+    v_s = CATALOGUE["stribeck"].nominal["stribeck_speed"]
+    slow, fast = (screw > 0.1) & (screw < v_s), screw > 4 * v_s
+    assert delta_i[slow].mean() > 20 * delta_i[fast].mean()
+
+
+def _peak_frequency(signal, dt):
+    signal = signal - signal.mean()
+    spectrum = np.abs(np.fft.rfft(signal * np.hanning(signal.size)))
+    return np.fft.rfftfreq(signal.size, dt)[np.argmax(spectrum)]
+
+
+@pytest.mark.parametrize("concept, screw_ratio", [("htls", 2.0), ("lths", 40.0)])
+def test_ujoint_ripple_at_twice_the_shaft_rotation(concept, screw_ratio, experiment, nominal_runs):
+    aug = get_model(concept).with_effects(["ujoint_kinematics"])
+    out = runs(aug, aug.parameters.nominal, experiment)[0]
+    window = (experiment.time > 4.5) & (experiment.time < 8.9)  # steady extension
+    ripple = out[window, 0] - nominal_runs[concept][window, 0]
+    shaft_hz = nominal_runs[concept][window, 0].mean() / screw_ratio / (2 * math.pi)
+    assert _peak_frequency(ripple, experiment.dt) == pytest.approx(2 * shaft_hz, abs=0.3)
+
+
+def test_torque_ripple_at_the_cogging_frequency(experiment, nominal_runs):
+    aug = get_model("htls").with_effects(["torque_ripple"])
+    out = runs(aug, aug.parameters.nominal, experiment)[0]
+    window = (experiment.time > 4.5) & (experiment.time < 8.9)
+    ripple = out[window, 3] - nominal_runs["htls"][window, 3]
+    motor_hz = nominal_runs["htls"][window, 0].mean() / (2 * math.pi)
+    assert _peak_frequency(ripple, experiment.dt) == pytest.approx(6 * motor_hz, abs=0.3)
+    assert np.abs(ripple).max() > 0.3  # A (of 0.5 A equivalent ripple), most of it reaches the current
+
+
+@pytest.mark.parametrize("tau", [0.03, 0.025, 0.0137])
+def test_sensor_delay_is_a_pure_interpolated_lag(tau, experiment, nominal_runs):
+    aug = get_model("htls").with_effects(["sensor_delay"], {"sensor_delay_tau": tau})
+    out = runs(aug, aug.parameters.nominal, experiment)[0]
+    t = experiment.time
+    nom = nominal_runs["htls"]
+    expected = np.stack([np.interp(t - tau, t, nom[:, j]) for j in range(nom.shape[1])], axis=1)
+    scale = np.abs(nom).max(axis=0)
+    assert np.all(np.abs(out - expected).max(axis=0) <= 1e-12 * scale)
+    # the cross-correlation of the Omega increments peaks at the delay
+    a, b = np.diff(nom[:, 0]), np.diff(out[:, 0])
+    lags = np.arange(-10, 11)
+    corr = [np.dot(a[max(0, -k):a.size - max(0, k)], b[max(0, k):b.size - max(0, -k)]) for k in lags]
+    assert lags[int(np.argmax(corr))] == round(tau / experiment.dt)
+    # delay_outputs on its own, batched over two delays
+    thetas = np.vstack([aug.parameters.nominal, aug.parameters.vector({"sensor_delay_tau": 0.0})])
+    both = delay_outputs(aug, thetas, t, np.stack([nom, nom]))
+    assert np.all(np.abs(both[0] - expected).max(axis=0) <= 1e-12 * scale)
+    np.testing.assert_array_equal(both[1], nom)
+
+
+@pytest.mark.parametrize("concept", ["htls", "lths"])
+def test_shaft_mode_matches_an_independent_two_inertia_model(concept):
+    """Eigenvalues of the kernel's Jacobian at a steady operating point against a linear
+    two-inertia model written from scratch: J_m dΩm = -p Ωm - T, J_L dΩL = T - B_L ΩL,
+    T = k q + d dq, k = J_red ω², d = 2 ζ ω J_red (motor speed loop p; position loop ignored)."""
+    period, zeta = 0.03, 0.05
+    aug = get_model(concept).with_effects(["shaft_compliance"], {"shaft_compliance_period": period,
+                                                                 "shaft_compliance_zeta": zeta})
+    th, c = aug.parameters.nominal, aug.kernel_constants()
+    names = aug.parameters.names
+    J = th[names.index("J")]
+    if concept == "htls":
+        evaluate, x = evaluate_htls_effects, np.array([30.0, 0.05, 0.051, 3.7, 0.0, 0.0])
+        fraction, p_speed = 0.5, th[names.index("p_PCE")]
+        u = np.array([0.155, -9000.0, -7000.0, 0.0])  # control unsaturated
+        i1 = i2 = 2.0
+        b_load = sum((th[names.index(f"B_TS{k}")] / math.cos(b) + th[names.index(f"B_U{k}")]) / 4.0
+                     + th[names.index(f"B_TP{k}")] / 2.0 for k, b in ((1, 3 * DEG), (2, 5 * DEG)))
+    else:
+        evaluate, x = evaluate_lths_effects, np.array([20.0, 600.0, 0.05, 0.051, 3.7, 0.0, 0.0])
+        fraction = 0.3
+        k_n, r_a, l_a = th[names.index("k_n")], th[names.index("R_A")], th[names.index("L_A")]
+        p_speed = None  # the current loop is part of the model below
+        u = np.array([0.155, -9000.0, -7000.0, 0.0])  # control unsaturated
+        # viscous load at the motor shaft (input shaft side of the magnetic gear, i_MG = 20)
+        b_load = ((th[names.index("B_TS1")] / math.cos(3 * DEG) + th[names.index("B_U1")]) / 4.0
+                  + th[names.index("B_TP1")] / 2.0
+                  + (th[names.index("B_TS2")] / math.cos(5 * DEG) + th[names.index("B_U2")]) / 4.0
+                  + th[names.index("B_TP2")] / 2.0) / 400.0
+    j_m, j_l = (1 - fraction) * J, fraction * J
+    j_red = j_m * j_l / J
+    omega = 2 * math.pi / period
+    k, d = j_red * omega ** 2, 2 * zeta * omega * j_red
+
+    def rhs(state):
+        dx, y = np.empty(aug.n_states), np.empty(aug.n_outputs)
+        evaluate(state, u, th, c, dx, y)
+        return dx
+
+    jac = np.empty((x.size, x.size))
+    for i in range(x.size):
+        step = np.zeros(x.size)
+        step[i] = 1e-6 * max(1.0, abs(x[i]))
+        jac[:, i] = (rhs(x + step) - rhs(x - step)) / (2 * step[i])
+    kernel = np.linalg.eigvals(jac)
+    if concept == "htls":  # states Ωm, ΩL, q
+        a = np.array([[(-p_speed - d) / j_m, d / j_m, -k / j_m],
+                      [d / j_l, (-d - b_load) / j_l, k / j_l],
+                      [1.0, -1.0, 0.0]])
+    else:  # states I, Ωm, ΩL, q; U_A = (p_PCE/k_n)(Ω_r - Ωm)
+        g = th[names.index("p_PCE")] / k_n
+        a = np.array([[-r_a / l_a, (-th[names.index("k_s")] - g) / l_a, 0.0, 0.0],
+                      [k_n / j_m, -d / j_m, d / j_m, -k / j_m],
+                      [0.0, d / j_l, (-d - b_load) / j_l, k / j_l],
+                      [0.0, 1.0, -1.0, 0.0]])
+    model = np.linalg.eigvals(a)
+    oscillatory = [z for z in model if z.imag > 1.0]
+    assert oscillatory, model
+    for z in oscillatory:
+        nearest = kernel[np.argmin(np.abs(kernel - z))]
+        assert abs(nearest - z) < 0.03 * abs(z), (z, nearest, kernel)
+
+
+@pytest.mark.parametrize("concept", ["htls", "lths"])
+def test_batched_equals_single(concept, experiment):
+    aug = get_model(concept).with_effects(list(CATALOGUE))
+    nominal = aug.parameters.nominal
+    thetas = np.stack([nominal, aug.parameters.vector({"backlash_delta": 0.01, "sensor_delay_tau": 0.013,
+                                                       "shaft_compliance_period": 0.02}),
+                       aug.parameters.vector({k: v for e in CATALOGUE.values() for k, v in e.start.items()})])
+    short = experiment.slice(0, 1500)  # through the first ramp and hold
+    batch = simulate_batch(aug, thetas, short.time, short.input_matrix(aug))
+    assert np.all(np.isfinite(batch))
+    for i in range(thetas.shape[0]):
+        np.testing.assert_array_equal(batch[i], simulate_batch(aug, thetas[i], short.time, short.input_matrix(aug)))
+
+
+# --- command line ---------------------------------------------------------------------------
+def run_cli(*args) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "ema_uq", *map(str, args)], capture_output=True, text=True,
+                          timeout=300)
+
+
+def test_simulate_with_effects_end_to_end(tmp_path):
+    out = tmp_path / "bl.nc"
+    result = run_cli("simulate", "--concept", "htls", "--experiment", "deploy-retract", "--noise", "0.02",
+                     "--seed", "3", "--effect", "backlash:delta=0.03", "--effect", "sensor_delay",
+                     "--set", "sensor_delay_tau=0.015", "--set", "J=0.055", "--out", out)
+    assert result.returncode == 0, result.stderr
+    line = result.stdout.strip()
+    assert "\n" not in line and "backlash(delta=0.03)" in line and "sensor_delay(tau=0.015)" in line
+    measurement = io.read_measurement(out, concept="htls")
+    assert measurement.channels == get_model("htls").outputs  # same outputs as the nominal model
+    assert "effect" not in json.dumps({k: str(v) for k, v in measurement.attrs.items()}).lower()
+    assert b"backlash" not in out.read_bytes()  # the data never name the effect
+    truth = json.loads((tmp_path / "bl.nc.truth.json").read_text())
+    assert truth["concept"] == "htls"
+    assert truth["effects"] == {"backlash": {"backlash_delta": 0.03}, "sensor_delay": {"sensor_delay_tau": 0.015}}
+    aug = get_model("htls").with_effects(["backlash", "sensor_delay"])
+    theta = aug.parameters.vector({"backlash_delta": 0.03, "sensor_delay_tau": 0.015, "J": 0.055})
+    expected = synthesize(aug, deploy_retract(), theta, noise=0.02, seed=3)
+    np.testing.assert_array_equal(measurement.values, expected.values)
+
+
+@pytest.mark.parametrize("effect, fragments", [
+    ("backlash:gap=0.1", ("effect backlash has no parameter 'gap'", "delta")),
+    ("backlash:delta=-1", ("backlash_delta = -1 lies outside its bounds",)),
+    ("gears", ("unknown effect 'gears' for concept lths", "backlash")),
+])
+def test_simulate_bad_effect_is_a_one_line_error(tmp_path, capsys, effect, fragments):
+    from ema_uq.cli import main
+
+    out = tmp_path / "x.nc"
+    status = main(["simulate", "--concept", "lths", "--experiment", "deploy-retract", "--effect", effect,
+                   "--out", str(out)])
+    captured = capsys.readouterr()
+    assert status == 2 and captured.out == ""
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("ema-uq: error: "), captured.err
+    for fragment in fragments:
+        assert fragment in lines[0], lines[0]
+    assert not out.exists()
