@@ -41,8 +41,35 @@ def _img(fig, alt: str) -> str:
     return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{figures.to_png_base64(fig)}">'
 
 
+SYNTHETIC_CONCEPTS = ("htls", "lths")
+
+
+def _records(study: dict, results: Path) -> dict:
+    """The study's estimation and validation measurements: the workflow's simulated files, or
+    for EMPS the benchmark's own files (never copied into the results)."""
+    if study["concept"] == "emps":
+        try:
+            files = io.emps_files(study)
+        except io.DataFileError:
+            return {}
+    else:
+        files = {role: results / "data" / f"{role}.nc" for role in ("estimation", "validation")}
+    return {role: io.read_measurement(path, concept=study["concept"]) for role, path in files.items()
+            if Path(path).exists()}
+
+
+def _record_constants(model, measurement):
+    """Design constants a record is simulated with: EMPS records carry their gains and start."""
+    if model.name == "emps":
+        from ..models.emps import constants_for
+
+        return constants_for(measurement)
+    return None
+
+
 def _identification_section(study: dict, results: Path) -> tuple[str, dict]:
     model = get_model(study["concept"])
+    synthetic = model.name in SYNTHETIC_CONCEPTS
     fits = {}
     for method in study["identify"]["methods"]:
         path = results / f"fit_{method}.json"
@@ -52,22 +79,24 @@ def _identification_section(study: dict, results: Path) -> tuple[str, dict]:
         return '<p class="muted">Identification not run.</p>', {}
     truth = model.parameters.vector(study["data"].get("set", {}))
     names = model.parameters.names
-    header = ["parameter", "unit", "truth"] + [f"{k} estimate" for k in fits] + [f"{k} CRB σ" for k in fits] \
-        + [f"{k} (est−truth)/σ" for k in fits]
+    header = ["parameter", "unit"] + (["truth"] if synthetic else []) + [f"{k} estimate" for k in fits] \
+        + [f"{k} CRB σ" for k in fits] + ([f"{k} (est−truth)/σ" for k in fits] if synthetic else [])
     rows = []
     for i, n in enumerate(names):
         est = [fits[k]["parameters"][n]["estimate"] for k in fits]
         std = [fits[k]["parameters"][n]["std"] for k in fits]
         z = [((e - truth[i]) / s) if s else None for e, s in zip(est, std)]
-        rows.append([n, model.parameters[n].unit, _fmt(truth[i])] + [_fmt(e, 6) for e in est]
-                    + [_fmt(s, 3) for s in std] + [_fmt(v, 2) for v in z])
+        rows.append([n, model.parameters[n].unit] + ([_fmt(truth[i])] if synthetic else [])
+                    + [_fmt(e, 6) for e in est] + [_fmt(s, 3) for s in std]
+                    + ([_fmt(v, 2) for v in z] if synthetic else []))
     summary_rows = [[k, "yes" if f["converged"] else '<span class="flag">no</span>', f["iterations"],
                      f["n_simulations"], f"{f['wall_time_s']:.2f}", _fmt(f["log_det_R"], 8),
                      html.escape(f.get("message", ""))] for k, f in fits.items()]
     parts = ["<h3>Fits</h3>", _table(["method", "converged", "iterations", "simulations", "wall time [s]",
                                       "log det R", "stop"], summary_rows)]
     parts += ["<h3>Parameters</h3>",
-              "<p>Truth is the value that generated the synthetic data; σ is the Cramér-Rao bound.</p>",
+              "<p>Truth is the value that generated the synthetic data; σ is the Cramér-Rao bound.</p>" if synthetic
+              else "<p>Real measured data: no truth; σ is the Cramér-Rao bound (white-residual assumption).</p>",
               _table(header, rows, name_cols=2)]
     for k, f in fits.items():
         if f.get("high_correlations"):
@@ -77,17 +106,14 @@ def _identification_section(study: dict, results: Path) -> tuple[str, dict]:
             parts.append(f'<p class="flag">{k}: {html.escape(w)}</p>')
 
     parts.append("<h3>Measured vs identified model (paper Fig. 2/3)</h3>")
-    for role in ("estimation", "validation"):
-        path = results / "data" / f"{role}.nc"
-        if not path.exists():
-            continue
-        meas = io.read_measurement(path, concept=model.name)
+    for role, meas in _records(study, results).items():
         channels = [c for c in meas.channels if c in next(iter(fits.values()))["channels"]][:8]
         idx = model.output_index(channels)
         preds = {}
         for k, f in fits.items():
             theta = np.array([f["parameters"][n]["estimate"] for n in names])
-            preds[k] = simulate_batch(model, theta, meas.time, meas.experiment.input_matrix(model))[:, idx]
+            preds[k] = simulate_batch(model, theta, meas.time, meas.experiment.input_matrix(model),
+                                      constants=_record_constants(model, meas))[:, idx]
         fig = figures.fit_comparison(meas.time, meas.select(channels).values, preds, channels,
                                      [model.unit_of(c) for c in channels],
                                      title=f"{model.title}: {role} data ({meas.experiment.name})")
@@ -157,6 +183,114 @@ def _posterior_section(study: dict, results: Path) -> str:
     return "\n".join(parts)
 
 
+def _png_file(path: Path, alt: str) -> str:
+    import base64
+
+    return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{base64.b64encode(path.read_bytes()).decode()}">'
+
+
+def _gap_section(study: dict, results: Path) -> str:
+    """The gap ledger: verdict, where the nominal model departs, each candidate's refit scores,
+    the winner's parameters and the before/after figure."""
+    path = results / "gap.json"
+    if not path.exists():
+        return '<p class="muted">Gap diagnosis not run.</p>'
+    gap = io.read_json(path)
+    hidden = study.get("gap", {}).get("rig_effects") or []
+    verdict = html.escape(str(gap["verdict"])) + (f": <b>{html.escape(str(gap['effect']))}</b>" if gap.get("effect") else "")
+    parts = [f"<p>Verdict <b>{verdict}</b>"
+             + (f" (confidence {html.escape(str(gap['confidence']))})" if gap.get("confidence") else "") + ". "
+             + f"The gap lies in channels {html.escape(', '.join(gap['where'].get('channels', [])) or '–')} and "
+               f"regimes {html.escape(', '.join(gap['where'].get('regimes', [])) or '–')}.</p>"]
+    if study["concept"] in SYNTHETIC_CONCEPTS:
+        truth = ", ".join(hidden) if hidden else "none (the rig-like records are nominal-model data)"
+        parts.append(f"<p>Check of this study: the rig-like records were generated with the hidden effect(s) "
+                     f"<b>{html.escape(truth)}</b>; the diagnosis did not see them.</p>")
+    summary = gap.get("gap") or {}
+    if "before" in summary or "gap_before" in summary:
+        before = summary.get("before", summary.get("gap_before"))
+        after = summary.get("after", summary.get("gap_after"))
+        metric = summary.get("metric", "held-out systematic NRMSE")
+        parts.append(f"<p>Gap metric ({html.escape(str(metric))}): {_fmt(before, 4)} before, {_fmt(after, 4)} after "
+                     f"the winning effect; shrink {_fmt(summary.get('shrink'), 3)}.</p>")
+    extra = [k for k in ("delta_bic", "likelihood_ratio", "held_out_gain", "signature_match") if gap["ranking"]
+             and k in gap["ranking"][0]]
+    rows = [[html.escape(str(c["effect"])), _fmt(c["score"], 4), _fmt(c["gap_before"], 4), _fmt(c["gap_after"], 4),
+             _fmt(c["shrink"], 3)] + [_fmt(c.get(k), 4) for k in extra] for c in gap["ranking"]]
+    parts += ["<h3>Candidates (best first)</h3>",
+              _table(["effect", "score", "gap before", "gap after", "shrink"] + [k.replace("_", " ") for k in extra], rows)]
+    params = gap.get("effect_parameters") or {}
+    if params:
+        prow = [[html.escape(k), _fmt(v.get("estimate"), 5), _fmt(v.get("std"), 3), html.escape(str(v.get("unit", "")))]
+                for k, v in params.items()]
+        parts += ["<h3>Estimated effect parameters</h3>", _table(["parameter", "estimate", "CRB σ", "unit"], prow)]
+    if gap.get("selected"):
+        parts.append(f"<p>Effects kept by forward selection: {html.escape(' + '.join(gap['selected']))}.</p>")
+    ledger = results / "gap_ledger.png"
+    if ledger.exists():
+        parts += ["<h3>Gap ledger</h3>", _png_file(ledger, "gap ledger")]
+    return "\n".join(parts)
+
+
+def _selfcheck_section(results: Path) -> str:
+    path = results / "selfcheck.json"
+    if not path.exists():
+        return '<p class="muted">Blind self-check not run for this study.</p>'
+    sc = io.read_json(path)
+    acc = sc.get("acceptance", {})
+    ok = sc.get("accepted", {})
+
+    def mark(key):
+        return "met" if ok.get(key) else '<span class="flag">not met</span>'
+
+    rows = [["cases", sc["n_cases"], "", ""],
+            ["top-1 accuracy (effect cases)", _fmt(sc["top1_accuracy"], 3), f"≥ {acc.get('top1_accuracy')}", mark("top1_accuracy")],
+            ["false-alarm rate (no-effect cases)", _fmt(sc["false_alarm_rate"], 3), f"≤ {acc.get('false_alarm_rate')}",
+             mark("false_alarm_rate")],
+            ["median shrink (right effect found)", _fmt(sc["median_shrink"], 3), f"≥ {acc.get('median_shrink')}",
+             mark("median_shrink")],
+            ["effect outside the catalogue → unexplained / low confidence", str(sc.get("out_of_catalogue_pass")), "True",
+             mark("out_of_catalogue")]]
+    labels = sorted({lab for row in sc["confusion"].values() for lab in row})
+    conf = [[html.escape(t)] + [str(row.get(lab, "")) for lab in labels] for t, row in sorted(sc["confusion"].items())]
+    cases = [[html.escape(str(c.get("case_id"))), html.escape(str(c.get("truth"))), _fmt(c.get("magnitude"), 3),
+              html.escape(str(c.get("label"))), _fmt(c.get("shrink"), 3)] for c in sc.get("cases", [])]
+    return ("<p>Synthetic cases with a hidden cause (or none), diagnosed without their labels "
+            f"(seed {sc.get('seed')}{', quick set' if sc.get('quick') else ''}, {sc.get('wall_time_s', 0):.0f} s).</p>"
+            + _table(["score", "value", "target", ""], rows)
+            + "<h3>Confusion matrix (rows: truth, columns: verdict)</h3>"
+            + _table(["truth"] + [html.escape(lab) for lab in labels], conf)
+            + "<h3>Cases</h3>" + _table(["case", "truth", "magnitude", "verdict", "shrink"], cases))
+
+
+def _emps_section(study: dict, results: Path) -> str:
+    """EMPS: ML beside the published IDIM-LS values and simulation errors next to the published figures."""
+    from ..emps_report import emps_comparison
+    from ..identify import FitResult
+
+    path = results / "fit_gn.json"
+    records = _records(study, results)
+    if not path.exists() or not records:
+        return '<p class="muted">EMPS fit or data not available.</p>'
+    fit = FitResult.from_json(io.read_json(path))
+    comp = emps_comparison(fit, records.get("estimation"), records.get("validation"))
+    rows = [[html.escape(r["parameter"]), html.escape(r["unit"]), f"{_fmt(r['ml'], 6)} ± {_fmt(r['ml_std'], 3)}",
+             f"{_fmt(r['published'], 6)} ± {_fmt(r['published_std'], 3)}", _fmt(r["difference_percent"], 3),
+             _fmt(r["z"], 3)] for r in comp.parameters]
+    err_rows = []
+    for role, kinds in comp.errors.items():
+        for kind, e in kinds.items():
+            err_rows.append([role, kind.replace("_", " ")] + [_fmt(e.get(k), 4) for k in
+                                                              ("position", "velocity", "acceleration", "force")])
+    notes = "".join(f"<li>{html.escape(n)}</li>" for n in comp.notes)
+    return (f"<p>ML output error ({comp.method.upper()}, channels {html.escape(', '.join(comp.channels))}) beside the "
+            f"published {html.escape(comp.reference)} estimates (inverse dynamics, Janot, Gautier, Brunot 2019).</p>"
+            + _table(["parameter", "unit", "ML ± CRB σ", "published ± σ", "difference %", "z"], rows, name_cols=2)
+            + "<h3>Simulation errors [%] (benchmark definition: 100‖z − y‖/‖z‖)</h3>"
+            + _table(["record", "model", "position", "velocity", "acceleration", "force"], err_rows, name_cols=2)
+            + f"<h3>Why the estimates differ</h3><ul>{notes}</ul>")
+
+
 def _stage_cost_section(results: Path) -> str:
     """Wall time and peak memory of every workflow job, from Snakemake's benchmark files."""
     rows, total = [], 0.0
@@ -189,6 +323,12 @@ def _provenance_section(study: dict, study_path: Path, results: Path, fits: dict
     for f in sorted(results.rglob("*")):
         if f.is_file() and f.suffix in (".nc", ".csv", ".mat") and "logs" not in f.parts:
             rows.append([f"sha256 {html.escape(str(f.relative_to(results)))}", file_sha256(f)[:32] + "…"])
+    if study["concept"] == "emps":
+        try:
+            for role, f in io.emps_files(study).items():
+                rows.append([f"sha256 {html.escape(f.name)} ({role}, measured)", file_sha256(f)[:32] + "…"])
+        except io.DataFileError:
+            rows.append(["measured data", "not found"])
     for k, fit in fits.items():
         rows.append([f"{k} fit created", html.escape(str(fit.get("provenance", {}).get("created", "")))])
     return _table(["item", "value"], [[html.escape(str(a)), str(b)] for a, b in rows])
@@ -198,10 +338,18 @@ def build_report(study: dict, study_path: str | Path, results: str | Path) -> st
     """HTML text of the report for ``study`` from the result files in ``results``."""
     results, study_path = Path(results), Path(study_path)
     ident, fits = _identification_section(study, results)
-    sections = [("identification", "Maximum-likelihood identification", ident),
-                ("posterior", "Bayesian posterior", _posterior_section(study, results))]
+    sections = [("identification", "Maximum-likelihood identification", ident)]
+    if study["concept"] == "emps":
+        sections.append(("emps", "EMPS: ML vs the published identification", _emps_section(study, results)))
+    sections.append(("posterior", "Bayesian posterior", _posterior_section(study, results)))
+    if (results / "gap.json").exists():
+        sections.append(("gap", "Sim-to-real gap", _gap_section(study, results)))
+    if (results / "selfcheck.json").exists():
+        sections.append(("selfcheck", "Blind self-check of the gap diagnosis", _selfcheck_section(results)))
     stages = {"posterior": "Bayesian posterior", "sobol": "Sobol sensitivity",
-              "identifiability": "Identifiability", "gap": "Sim-to-real gap"}
+              "ident": "Identifiability", "gap": "Sim-to-real gap"}
+    if study["concept"] not in SYNTHETIC_CONCEPTS:  # Sobol and identifiability concern the EMA friction terms
+        stages = {k: v for k, v in stages.items() if k in ("posterior", "gap")}
     pending = [title for key, title in stages.items() if not any(results.glob(f"{key}*"))]
     if pending:
         sections.append(("pending", "Stages not run", "<p class=\"muted\">" + ", ".join(pending) + "</p>"))
