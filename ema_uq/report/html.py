@@ -183,6 +183,97 @@ def _posterior_section(study: dict, results: Path) -> str:
     return "\n".join(parts)
 
 
+def _sobol_section(results: Path) -> str:
+    from . import sensitivity_figures
+
+    path = results / "sobol.json"
+    if not path.exists():
+        return '<p class="muted">Sobol analysis not run.</p>'
+    sobol = io.read_json(path)
+    state = "converged" if sobol["converged"] else '<span class="flag">not converged</span>'
+    parts = [f"<p>SALib Saltelli design, N = {sobol['n_base']} base samples over {len(sobol['parameters'])} "
+             f"parameters ({sobol['n_evaluations']} runs in {sobol['n_chunks']} independent chunks, "
+             f"{sobol['evaluations_per_s']:.0f} runs/s); {int(100 * sobol.get('conf_level', 0.95))} % bootstrap "
+             f"intervals; N/2 vs N check: {state}.</p>"]
+    main = ("cost", "rms_Omega", "rms_y1", "rms_I_A", "rms_U_A", "tracking_error", "peak_torque", "peak_current",
+            "energy")
+    qoi = [q for q in main if q in sobol["qoi"]] or list(sobol["qoi"])[:8]
+    names = list(sobol["parameters"])
+    rows = []
+    for n in names:
+        row = [html.escape(n)]
+        for q in qoi:
+            st, conf = sobol["qoi"][q]["ST"][n], sobol["qoi"][q]["ST_conf"][n]
+            row.append(f"{_fmt(st, 2)} ± {_fmt(conf, 1)}")
+        rows.append(row)
+    parts += ["<h3>Total indices S<sub>T</sub> ± 95 % interval, main quantities of interest (all in SOBOL.json)</h3>",
+              _table(["parameter"] + [html.escape(q) for q in qoi], rows),
+              _img(sensitivity_figures.sobol_bars(sobol), "Sobol indices"),
+              "<h3>Time-resolved indices with the flap command</h3>",
+              _img(sensitivity_figures.time_resolved(sobol), "time-resolved Sobol indices")]
+    return "\n".join(parts)
+
+
+def _identifiability_section(study: dict, results: Path) -> str:
+    """Sensor-set verdicts, profiles, combinations and one dossier line per friction/damping
+    parameter joining every piece of evidence the workflow produced."""
+    from . import sensitivity_figures
+
+    path = results / "ident.json"
+    if not path.exists():
+        return '<p class="muted">Identifiability analysis not run.</p>'
+    ident = io.read_json(path)
+    sobol = io.read_json(results / "sobol.json") if (results / "sobol.json").exists() else None
+    posterior = None
+    if (results / "posterior.nc").exists():
+        from ..bayes import PosteriorResult
+
+        posterior = PosteriorResult.from_netcdf(results / "posterior.nc").summary()
+    sets = ident["sensor_sets"]
+    parts = []
+    for name, r in sets.items():
+        fim = r["fim"]
+        parts.append(f"<p><b>{html.escape(name)}</b> sensors ({html.escape(', '.join(r['channels']))}): information "
+                     f"rank {fim['rank']} of {fim['n_parameters']}, condition {_fmt(fim['condition'], 3)}.</p>")
+        if r["combinations"]:
+            items = "".join(f"<li>{html.escape(c['expression'])} = {_fmt(c.get('value'), 5)} ± {_fmt(c.get('std'), 2)}</li>"
+                            for c in r["combinations"])
+            parts.append(f"<p>Identifiable combinations:</p><ul>{items}</ul>")
+    parts += [_img(sensitivity_figures.sensor_set_verdicts(ident), "verdicts per sensor set"),
+              _img(sensitivity_figures.profile_likelihoods(ident), "profile likelihoods")]
+    header = ["parameter"]
+    for name in sets:
+        header += [f"{name}: CRB σ", f"{name}: profile 95 %", f"{name}: γ max (with)", f"{name}: verdict"]
+    header += ["Sobol S<sub>T</sub> (cost)", "posterior sd / CRB σ"]
+    rows = []
+    for n in ident["comparison"]:
+        row = [html.escape(n)]
+        for name, r in sets.items():
+            t = r["parameters"].get(n)
+            if t is None:
+                row += ["–"] * 4
+                continue
+            ci = t.get("profile_ci")
+            ci_text = "–" if not ci else "[" + ", ".join("open" if x is None else f"{x:.4g}" for x in ci) + "]"
+            verdict = t["verdict"].replace("_", " ")
+            if t["verdict"] != "identifiable":
+                verdict = f'<span class="flag">{verdict}</span>'
+            row += [_fmt(t["crb_std"], 3), ci_text,
+                    f"{_fmt(t['collinearity'], 3)} ({html.escape(str(t.get('most_collinear_with') or '–'))})", verdict]
+        st = sobol["qoi"].get("cost", {}).get("ST", {}).get(n) if sobol else None
+        ratio = None
+        if posterior is not None and n in posterior.index and posterior.loc[n, "crb_sd"] > 0:
+            ratio = posterior.loc[n, "sd"] / posterior.loc[n, "crb_sd"]
+        row += [_fmt(st, 2), _fmt(ratio, 3)]
+        rows.append(row)
+    parts += ["<h3>Dossier per friction/damping parameter</h3>",
+              "<p>Cramér-Rao σ, 95 % profile-likelihood interval, largest pairwise Brun collinearity index and its "
+              "partner, and the verdict for each sensor set; the Sobol total index of the det R cost and the posterior "
+              "width relative to the Cramér-Rao σ (fit channels of the study).</p>",
+              _table(header, rows)]
+    return "\n".join(parts)
+
+
 def _png_file(path: Path, alt: str) -> str:
     import base64
 
@@ -342,6 +433,10 @@ def build_report(study: dict, study_path: str | Path, results: str | Path) -> st
     if study["concept"] == "emps":
         sections.append(("emps", "EMPS: ML vs the published identification", _emps_section(study, results)))
     sections.append(("posterior", "Bayesian posterior", _posterior_section(study, results)))
+    if study["concept"] in SYNTHETIC_CONCEPTS:
+        sections.append(("sobol", "Sobol sensitivity", _sobol_section(results)))
+        sections.append(("identifiability", "Identifiability of the friction and damping parameters",
+                         _identifiability_section(study, results)))
     if (results / "gap.json").exists():
         sections.append(("gap", "Sim-to-real gap", _gap_section(study, results)))
     if (results / "selfcheck.json").exists():
