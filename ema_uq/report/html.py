@@ -244,7 +244,7 @@ def _identifiability_section(study: dict, results: Path) -> str:
     header = ["parameter"]
     for name in sets:
         header += [f"{name}: CRB σ", f"{name}: profile 95 %", f"{name}: γ max (with)", f"{name}: verdict"]
-    header += ["Sobol S<sub>T</sub> (cost)", "posterior sd / CRB σ"]
+    header += ["Sobol S_T (cost)", "posterior sd / CRB σ"]
     rows = []
     for n in ident["comparison"]:
         row = [html.escape(n)]
