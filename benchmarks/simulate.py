@@ -5,11 +5,13 @@ For each concept, full deploy-retract runs (38 s, 3800 samples) per second of wa
   (a) peer   : Python rhs under scipy ``solve_ivp`` (RK45, rtol 1e-6, atol 1e-9), one held
                sample interval at a time (tests/reference_scipy.py, ``peer_simulate``);
   (b) single : ``simulate_batch`` called once per parameter set, in a loop;
-  (c) batch  : one ``simulate_batch`` call on 256 sets, on all numba threads.
+  (c) batch  : one ``simulate_batch`` call on 256 sets, on all numba threads;
+(b) and (c) for each integrator: adaptive Dormand-Prince 5(4) at the concept's rtol (the
+default) and fixed-step RK4 at the concept's step.
 
-Also: accuracy of (a) and (b) against the DOP853 rtol 1e-10 reference (so the peer is
-compared at equal accuracy), and numba compile time measured in fresh subprocesses with an
-empty cache directory (first process compiles, second reuses the cache).
+Also: accuracy of the peer and of each integrator against the DOP853 rtol 1e-10 reference
+(so the peer is compared at equal accuracy), and numba compile time measured in fresh
+subprocesses with an empty cache directory (first process compiles, second reuses the cache).
 
 Usage: python benchmarks/simulate.py [--quick]
 """
@@ -71,9 +73,9 @@ def parameter_sets(model, n: int, seed: int = 0) -> np.ndarray:
 
 
 def bench_concept(concept: str, n_peer: int, n_single: int, repeats: int, accuracy: bool,
-                  peer_rtol: float = 1e-6) -> dict:
-    """Runs per second of the peer, one set and the batch; ``peer_rtol`` tightens the peer so it can
-    be compared at the accuracy of the fixed-step simulator (atol = 1e-3 rtol)."""
+                  peer_rtol: float = 1e-6) -> list[dict]:
+    """Runs per second of the peer, one set and the batch (one row per integrator); ``peer_rtol``
+    tightens the peer so it can be compared at the accuracy of the simulator (atol = 1e-3 rtol)."""
     def peer_simulate(concept, theta, consts, time_, inputs):
         return reference_simulate(concept, theta, consts, time_, inputs, method="RK45",
                                   rtol=peer_rtol, atol=1e-3 * peer_rtol)
@@ -85,22 +87,27 @@ def bench_concept(concept: str, n_peer: int, n_single: int, repeats: int, accura
     consts = model.constants.as_dict(model.constants.nominal)
     as_dict = model.parameters.as_dict
 
-    simulate_batch(model, thetas[:2], time_, inputs)  # load the compiled kernel before timing
     peer = best_rate(lambda: [peer_simulate(concept, as_dict(thetas[i]), consts, time_, inputs)
                               for i in range(n_peer)], n_peer, 1)
-    single = best_rate(lambda: [simulate_batch(model, thetas[i], time_, inputs) for i in range(n_single)],
-                       n_single, repeats)
-    batch = best_rate(lambda: simulate_batch(model, thetas, time_, inputs), N_BATCH, repeats)
-    row = {"concept": concept, "peer": peer, "single": single, "batch": batch,
-           "step": model.integration_step}
     if accuracy:
         theta, const_vec = model.parameters.nominal, model.constants.nominal
         ref = reference_simulate(concept, as_dict(theta), consts, time_, inputs)
         scale = np.abs(ref).max(axis=0)
         err = lambda out: float((np.abs(out - ref).max(axis=0) / scale).max())  # noqa: E731
-        row["err_peer"] = err(peer_simulate(concept, as_dict(theta), consts, time_, inputs))
-        row["err_numba"] = err(simulate_batch(model, theta, time_, inputs, constants=const_vec))
-    return row
+        err_peer = err(peer_simulate(concept, as_dict(theta), consts, time_, inputs))
+    rows = []
+    for method, setting in (("dopri5", f"rtol {model.rtol:g}"), ("rk4", f"step {model.integration_step * 1e3:g} ms")):
+        run = lambda th, m=method: simulate_batch(model, th, time_, inputs, integrator=m)  # noqa: E731
+        run(thetas[:2])  # load the compiled kernel before timing
+        single = best_rate(lambda: [run(thetas[i]) for i in range(n_single)], n_single, repeats)
+        batch = best_rate(lambda: run(thetas), N_BATCH, repeats)
+        row = {"concept": concept, "method": method, "setting": setting, "peer": peer, "single": single,
+               "batch": batch}
+        if accuracy:
+            row["err_peer"] = err_peer
+            row["err_numba"] = err(simulate_batch(model, theta, time_, inputs, constants=const_vec, integrator=method))
+        rows.append(row)
+    return rows
 
 
 def compile_times() -> list[dict]:
@@ -134,9 +141,10 @@ def main(argv=None) -> None:
           "per held sample interval")
     # other work on the machine distorts every figure below; the load average shows it
     print("load average at start (1, 5, 15 min): %.2f %.2f %.2f\n" % os.getloadavg())
-    rows = [bench_concept(c, n_peer, n_single, repeats, not args.quick, args.peer_rtol) for c in ("htls", "lths")]
+    rows = [r for c in ("htls", "lths") for r in bench_concept(c, n_peer, n_single, repeats, not args.quick,
+                                                                 args.peer_rtol)]
 
-    head = (f"{'concept':<8}{'peer run/s':>12}{'single run/s':>14}{f'batch{N_BATCH} run/s':>16}"
+    head = (f"{'concept':<8}{'method':<8}{'peer run/s':>12}{'single run/s':>14}{f'batch{N_BATCH} run/s':>16}"
             f"{'single/peer':>13}{'target':>9}{'batch/single':>14}{'target':>9}")
     print(head)
     print("-" * len(head))
@@ -147,14 +155,18 @@ def main(argv=None) -> None:
         t_sp_txt = f">={t_sp:g}" if t_sp else "-"
         mark_sp = "" if t_sp is None else (" ok" if s_p >= t_sp else " MISS")
         mark_bs = " ok" if b_s >= TARGET_BATCH_OVER_SINGLE else " MISS"
-        print(f"{r['concept']:<8}{r['peer']:>12.3g}{r['single']:>14.4g}{r['batch']:>16.4g}"
+        print(f"{r['concept']:<8}{r['method']:<8}{r['peer']:>12.3g}{r['single']:>14.4g}{r['batch']:>16.4g}"
               f"{s_p:>10.1f}x{mark_sp:<3}{t_sp_txt:>8}{b_s:>11.2f}x{mark_bs:<3}{'>=' + str(TARGET_BATCH_OVER_SINGLE):>8}")
-    print(f"\nper run [ms]: " + "; ".join(
-        f"{r['concept']} peer {1e3 / r['peer']:.0f}, single {1e3 / r['single']:.2f}, "
-        f"batch {1e3 / r['batch']:.2f} (RK4 step {r['step'] * 1e3:g} ms)" for r in rows))
+    print("\nper run [ms]:")
+    for r in rows:
+        t_sp = TARGET_SINGLE_OVER_PEER.get(r["concept"])
+        of_target = f", {r['single'] / r['peer'] / t_sp:.2f} of the single/peer target" if t_sp else ""
+        print(f"  {r['concept']} {r['method']:<6} ({r['setting']}): peer {1e3 / r['peer']:.0f}, "
+              f"single {1e3 / r['single']:.2f}, batch {1e3 / r['batch']:.2f}{of_target}")
     if not args.quick:
-        print("accuracy vs DOP853 rtol 1e-10 reference (max over channels of max|err|/max|ref|): " + "; ".join(
-            f"{r['concept']} peer {r['err_peer']:.1e}, numba {r['err_numba']:.1e}" for r in rows))
+        print("accuracy vs DOP853 rtol 1e-10 reference (max over channels of max|err|/max|ref|):")
+        for r in rows:
+            print(f"  {r['concept']} {r['method']:<6} numba {r['err_numba']:.1e} (peer {r['err_peer']:.1e})")
 
     print("\nnumba compile time (fresh interpreters, empty NUMBA_CACHE_DIR) [s]:")
     for c in compile_times():

@@ -34,6 +34,9 @@ class Model:
     parameters : the estimated parameters Θ (their nominal values are the defaults).
     constants : design constants and model settings (all fixed), in kernel order.
     integration_step : fixed RK4 step [s] known to be converged below the noise level.
+    integrator : "dopri5" (adaptive Dormand-Prince 5(4), tolerance ``rtol``, absolute
+        tolerance ``rtol * state_scales``) or "rk4" (fixed ``integration_step``).
+    state_scales : typical magnitude of each state (state units), the adaptive error scale.
     derive : constants computed once per simulation from ``constants`` (appended in kernel order).
     """
 
@@ -49,6 +52,9 @@ class Model:
     derive: Callable[[np.ndarray], np.ndarray]
     inputs: tuple[str, ...] = INPUTS
     required_inputs: tuple[str, ...] = REQUIRED_INPUTS
+    integrator: str = "rk4"
+    rtol: float = 3e-8
+    state_scales: tuple[float, ...] = ()
     #: a concept with its own compiled simulator (e.g. a discrete controller around a
     #: continuous plant) sets this; ``simulate_batch`` then calls
     #: ``batch_simulator(model, thetas, inputs, kernel_constants, x0, dt, n_sub)``.

@@ -73,6 +73,7 @@ MODEL = Model(
     name="htls", model_id=0, title="HT/LS (high torque / low speed)",
     states=STATES, outputs=OUTPUTS, output_units=OUTPUT_UNITS,
     parameters=PARAMETERS, constants=CONSTANTS, derive=derived_constants, integration_step=5e-4,
+    integrator="rk4", rtol=3e-8, state_scales=(30.0, 0.3, 0.3, 500.0),  # Omega, y1, y2, theta
     effect_catalogue=CATALOGUE, augment=partial(
         augment_ema, model_id=100,  # effect_kernels.evaluate_htls_effects
         extra_states={"backlash": ("backlash_b1", "backlash_b2"), "shaft_compliance": ("shaft_twist", "shaft_twist_rate")},

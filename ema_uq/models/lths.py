@@ -78,6 +78,7 @@ MODEL = Model(
     name="lths", model_id=1, title="LT/HS (low torque / high speed)",
     states=STATES, outputs=OUTPUTS, output_units=OUTPUT_UNITS,
     parameters=PARAMETERS, constants=CONSTANTS, derive=derived_constants, integration_step=2e-4,
+    integrator="rk4", rtol=1.5e-8, state_scales=(30.0, 900.0, 0.3, 0.3, 1000.0),  # I_A, Omega, y1, y2, theta
     effect_catalogue=CATALOGUE, augment=partial(
         augment_ema, model_id=101,  # effect_kernels.evaluate_lths_effects
         extra_states={"backlash": ("backlash_b",), "shaft_compliance": ("shaft_twist", "shaft_twist_rate")},

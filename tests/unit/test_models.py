@@ -294,11 +294,13 @@ def test_batch_equals_single_bit_for_bit(concept, experiment):
 
 
 @pytest.mark.parametrize("concept", ["htls", "lths"])
-def test_halving_the_step_changes_little(concept, experiment, nominal_runs):
+def test_halving_the_step_changes_little(concept, experiment):
+    """The fixed-step RK4 alternative at its converged step."""
     model = get_model(concept)
-    half = simulate_batch(model, model.parameters.nominal, experiment.time, experiment.input_matrix(),
-                          step=model.integration_step / 2)
-    err = rel_error(nominal_runs[concept], half)
+    full, half = (simulate_batch(model, model.parameters.nominal, experiment.time, experiment.input_matrix(),
+                                 integrator="rk4", step=step)
+                  for step in (model.integration_step, model.integration_step / 2))
+    err = rel_error(full, half)
     worst = int(np.argmax(err))
     assert err.max() < STEP_HALVING_TOL, (
         f"{concept}: halving the step {model.integration_step:g} s changes {model.outputs[worst]} "
@@ -306,17 +308,44 @@ def test_halving_the_step_changes_little(concept, experiment, nominal_runs):
 
 
 @pytest.mark.parametrize("concept", ["htls", "lths"])
+def test_halving_the_tolerance_changes_little(concept, experiment):
+    """The adaptive integrator at the concept's tolerance; a 100x looser one must show a change
+    (the tolerance really steers the steps)."""
+    model = get_model(concept)
+    base, tighter, looser = (simulate_batch(model, model.parameters.nominal, experiment.time,
+                                            experiment.input_matrix(), integrator="dopri5", rtol=rtol)
+                             for rtol in (model.rtol, model.rtol / 2, model.rtol * 100))
+    err = rel_error(base, tighter)
+    worst = int(np.argmax(err))
+    assert err.max() < STEP_HALVING_TOL, (
+        f"{concept}: halving rtol {model.rtol:g} changes {model.outputs[worst]} "
+        f"by {err.max():.2e} (relative), tolerance {STEP_HALVING_TOL:g}")
+    assert rel_error(base, looser).max() > 10 * err.max()
+
+
+def test_unknown_integrator_is_a_one_line_error(experiment):
+    with pytest.raises(ValueError, match="unknown integrator 'euler'; choose one of dopri5, rk4"):
+        simulate_batch("htls", get_model("htls").parameters.nominal, experiment.time, experiment.input_matrix(),
+                       integrator="euler")
+
+
+@pytest.mark.parametrize("concept", ["htls", "lths"])
 def test_simulator_matches_scipy_reference(concept, experiment, nominal_runs):
-    """Full deploy-retract run against DOP853 (rtol 1e-10) of the independent reference."""
+    """Full deploy-retract run against DOP853 (rtol 1e-10) of the independent reference, for
+    both integrators (the concept's default is ``nominal_runs``)."""
     model = get_model(concept)
     ref = reference_simulate(concept, model.parameters.as_dict(model.parameters.nominal),
                              model.constants.as_dict(model.constants.nominal),
                              experiment.time, experiment.input_matrix())
-    err = rel_error(nominal_runs[concept], ref)
-    worst = int(np.argmax(err))
-    assert err.max() < REFERENCE_TOL, (
-        f"{concept}: {model.outputs[worst]} differs from the scipy reference by {err.max():.2e} "
-        f"(relative), tolerance {REFERENCE_TOL:g}")
+    for method in ("dopri5", "rk4"):
+        run = (nominal_runs[concept] if method == model.integrator else
+               simulate_batch(model, model.parameters.nominal, experiment.time, experiment.input_matrix(),
+                              integrator=method))
+        err = rel_error(run, ref)
+        worst = int(np.argmax(err))
+        assert err.max() < REFERENCE_TOL, (
+            f"{concept} {method}: {model.outputs[worst]} differs from the scipy reference by {err.max():.2e} "
+            f"(relative), tolerance {REFERENCE_TOL:g}")
 
 
 @pytest.mark.parametrize("concept, peak_extend, peak_retract",
