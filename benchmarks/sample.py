@@ -1,22 +1,25 @@
 """Posterior sampling speed: effective samples per second (minimum over parameters) of
-``ema_uq.bayes.sample`` driven by the batched simulator, side by side with the same emcee
-run driven one walker at a time (``vectorize=False``: one simulator call per walker).
+``ema_uq.bayes.sample`` for each emcee move kind, side by side with the same run driven one
+walker at a time (``vectorize=False``: one simulator call per walker).
 
-Problem: HT/LS, all 16 parameters free, deploy-retract (3800 samples), every output channel,
-2 % noise (seed 1), ML Gauss-Newton fit as the start, default priors (flat on the bounds,
-rig normal for p_ACE/p_PCE), 4 ensembles x 32 walkers, DE moves.
+Problem (the default HT/LS study): deploy-retract (3800 samples), every output channel, 2 %
+noise (seed 1), all 16 parameters free, ML Gauss-Newton fit as the start, default priors
+(flat on the bounds, rig normal for p_ACE/p_PCE), default settings of each move kind
+(independence: 4 ensembles x 16 walkers; de/stretch: 4 ensembles x 32 walkers).
 
-Batched column: a run whose step count is chosen from a timed warm-up to fit ``--budget``
-seconds (default 270 s, the target is >= 1000 ESS for every parameter within 300 s).
-ESS = ArviZ bulk and tail ESS over the kept draws (walkers as chains), and the emcee figure
-n_walkers x (n_steps - burn-in) / τ for comparison; ESS/s divides by the sampling wall time.
+Per move kind: a run under the stopping rule, capped at the step count a timed warm-up says
+fits ``--budget`` seconds (the target is >= 1000 bulk ESS for every parameter within 300 s).
+Figures: ESS = ArviZ bulk/tail ESS over the kept draws (walkers as chains) and the emcee
+figure n_chains x (n_steps - burn-in) / τ; ESS/s divides by the sampling wall time, ESS per
+1000 simulations does not depend on the machine's load; sd/CRB = posterior sd over the
+Cramér-Rao σ (range over parameters).
 
-Peer column: the same seed and settings with ``vectorize=False`` for ``--peer-steps`` steps.
-The walkers see the same log-probabilities, so its chain is the batched chain step for step
-(checked and printed); its ESS per step is therefore the batched run's, and its ESS/s is
-that times its measured steps per second.
+Peer column: the first move kind with ``vectorize=False`` for ``--peer-steps`` steps, same
+seed. The walkers see the same log-probabilities, so its chain is the batched chain step for
+step (checked and printed); its ESS/s is the batched ESS per step times its steps per second.
 
-Usage: python benchmarks/sample.py [--budget S] [--peer-steps N] [--seed N]
+Usage: python benchmarks/sample.py [--moves independence de stretch] [--budget S]
+       [--peer-steps N] [--seed N]
 """
 from __future__ import annotations
 
@@ -35,8 +38,10 @@ TARGET_SECONDS = 300.0
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--budget", type=float, default=270.0, help="seconds for the batched run (default 270)")
-    ap.add_argument("--peer-steps", type=int, default=100, help="steps of the one-at-a-time run (default 100)")
+    ap.add_argument("--moves", nargs="+", choices=bayes.MOVE_KINDS, default=list(bayes.MOVE_KINDS),
+                    help="move kinds to compare, the first one also against the peer (default: all)")
+    ap.add_argument("--budget", type=float, default=270.0, help="seconds per move kind (default 270)")
+    ap.add_argument("--peer-steps", type=int, default=50, help="steps of the one-at-a-time run (default 50)")
     ap.add_argument("--seed", type=int, default=1)
     args = ap.parse_args()
 
@@ -44,71 +49,97 @@ def main() -> None:
     data = synthesize("htls", deploy_retract(), noise=0.02, seed=1)
     problem = FitProblem([data])
     fit = estimate(problem, start=model.parameters.nominal)
-    settings = bayes.SamplerSettings(check_every=50, n_predictive=0)
-    n_walkers = settings.walkers_for(len(fit.free_names))
-    n_total = n_walkers * settings.n_ensembles
+    n_free = len(fit.free_names)
+    print(f"HT/LS, {n_free} free parameters, {problem.n_samples} samples x {len(problem.channels)} channels; "
+          f"{numba.get_num_threads()} numba threads")
 
-    # warm-up: half an ensemble per call, as the DE/stretch moves evaluate it
+    rows, results = {}, {}
+    for kind in args.moves:
+        settings = bayes.SamplerSettings(moves=kind, n_predictive=0)
+        per_set = _time_per_set(problem, fit, settings.walkers_for(n_free))
+        n_chains = settings.walkers_for(n_free) * settings.n_ensembles
+        steps = int(args.budget / (per_set * n_chains) * 0.95) // settings.check_every * settings.check_every
+        steps = max(steps, 2 * settings.check_every)
+        print(f"{kind}: {settings.n_ensembles} ensembles x {settings.walkers_for(n_free)} walkers; warm-up "
+              f"{per_set * 1e3:.2f} ms per parameter set -> at most {steps} steps for {args.budget:.0f} s", flush=True)
+        res = bayes.sample(problem, fit, settings=bayes.SamplerSettings(**{**settings.__dict__, "max_steps": steps}),
+                           seed=args.seed, predictive=False,
+                           progress=lambda line, k=kind: print(f"  {k} {line}", flush=True))
+        results[kind] = res
+        rows[kind] = _figures(res, n_chains)
+
+    first = args.moves[0]
+    peer_settings = bayes.SamplerSettings(moves=first, max_steps=args.peer_steps, check_every=args.peer_steps,
+                                          n_predictive=0, vectorize=False)
+    peer = bayes.sample(problem, fit, settings=peer_settings, seed=args.seed, predictive=False)
+    batched = results[first]
+    peer_steps_per_s = peer.n_steps / peer.wall_time_s
+    rows["peer"] = {
+        "steps run": peer.n_steps, "simulations": peer.n_simulations, "wall time [s]": peer.wall_time_s,
+        "simulations per second": peer.n_simulations / peer.wall_time_s,
+        "min bulk ESS per second": rows[first]["min bulk ESS"] / batched.n_steps * peer_steps_per_s,
+    }
+
+    print()
+    names = [*args.moves, "peer"]
+    print(f"{'':<32}" + "".join(f"{n if n != 'peer' else first + ', 1 walker/call':>24}" for n in names))
+    for key, fmt in [("steps run", "d"), ("stopping rule met", "s"), ("simulations", "d"), ("wall time [s]", ".1f"),
+                     ("simulations per second", ".1f"), ("acceptance", ".2f"), ("max tau [steps]", ".1f"),
+                     ("min bulk ESS", ".0f"), ("min tail ESS", ".0f"), ("min emcee ESS (chains*L/tau)", ".0f"),
+                     ("min bulk ESS per second", ".2f"), ("min bulk ESS per 1000 sims", ".1f"),
+                     ("max R-hat", ".4f"), ("sd/CRB min", ".3f"), ("sd/CRB max", ".3f")]:
+        cells = []
+        for n in names:
+            v = rows[n].get(key)
+            cells.append(f"{'':>24}" if v is None else f"{format(v, fmt):>24}")
+        print(f"{key:<32}" + "".join(cells))
+    same = _same_prefix(batched, peer)
+    print(f"peer chain identical to the batched {first} chain's first {peer.n_steps} steps: {same}")
+    print(f"batched speed-up over one walker per call: "
+          f"{batched.n_simulations / batched.wall_time_s / rows['peer']['simulations per second']:.2f}x simulations/s")
+    ok = rows[first]["min bulk ESS"] >= TARGET_ESS and batched.wall_time_s <= TARGET_SECONDS
+    print(f"target >= {TARGET_ESS} ESS for every parameter in <= {TARGET_SECONDS:.0f} s ({first} moves): "
+          f"{'MET' if ok else 'NOT MET'} (min bulk ESS {rows[first]['min bulk ESS']:.0f} in {batched.wall_time_s:.0f} s)")
+    print()
+    table = batched.summary()
+    table["sd/crb"] = table["sd"] / table["crb_sd"]
+    print(table[["mean", "sd", "crb_sd", "sd/crb", "ess_bulk", "ess_tail", "r_hat"]].to_string(
+        float_format=lambda v: f"{v:.4g}"))
+
+
+def _time_per_set(problem, fit, batch: int) -> float:
+    """Seconds per parameter set of the log posterior in batches of ``batch`` (a warm-up call
+    compiles first)."""
     posterior = bayes.LogPosterior(problem, bayes.build_priors(problem), fit.estimate)
     rng = np.random.default_rng(0)
-    free = fit.estimate[problem.free_index] + rng.standard_normal((n_walkers // 2, 16)) * np.sqrt(
-        np.diag(fit.covariance)) * 0.1
+    free = fit.estimate[problem.free_index] + 0.1 * rng.standard_normal((batch, len(fit.free_names))) * np.sqrt(
+        np.diag(fit.covariance))
     posterior(free)
     t0 = time.perf_counter()
-    for _ in range(5):
+    for _ in range(3):
         posterior(free)
-    per_set = (time.perf_counter() - t0) / (5 * free.shape[0])
-    steps = int(args.budget / (per_set * n_total) * 0.95) // settings.check_every * settings.check_every
-    steps = max(steps, 2 * settings.check_every)
-    print(f"HT/LS, 16 free parameters, {problem.n_samples} samples x {len(problem.channels)} channels; "
-          f"{settings.n_ensembles} ensembles x {n_walkers} walkers ({settings.moves} moves); "
-          f"{numba.get_num_threads()} numba threads")
-    print(f"warm-up: {per_set * 1e3:.2f} ms per parameter set in batches of {free.shape[0]} -> {steps} steps "
-          f"for a {args.budget:.0f} s budget")
+    return (time.perf_counter() - t0) / (3 * batch)
 
-    batched = bayes.sample(problem, fit, settings=bayes.SamplerSettings(**{**settings.__dict__, "max_steps": steps}),
-                           seed=args.seed, predictive=False,
-                           progress=lambda line: print("  batched " + line, flush=True))
-    table = batched.summary()
-    ess_bulk, ess_tail = table["ess_bulk"].values, table["ess_tail"].values
-    tau = batched.tau.max(axis=0)
-    ess_emcee = settings.n_ensembles * n_walkers * (batched.n_steps - batched.burn_in) / tau
-    wall = batched.wall_time_s
 
-    peer_settings = bayes.SamplerSettings(**{**settings.__dict__, "max_steps": args.peer_steps,
-                                             "check_every": args.peer_steps, "vectorize": False})
-    peer = bayes.sample(problem, fit, settings=peer_settings, seed=args.seed, predictive=False)
-    same = _same_prefix(batched, peer)
-    peer_steps_per_s = peer.n_steps / peer.wall_time_s
-    steps_per_s = batched.n_steps / wall
-    ess_per_step = float(np.min(ess_bulk)) / batched.n_steps
-
-    print()
-    print(f"{'':<34}{'batched (ema_uq)':>20}{'one walker per call':>22}")
-    print(f"{'steps run':<34}{batched.n_steps:>20d}{peer.n_steps:>22d}")
-    print(f"{'simulations':<34}{batched.n_simulations:>20d}{peer.n_simulations:>22d}")
-    print(f"{'wall time [s]':<34}{wall:>20.1f}{peer.wall_time_s:>22.1f}")
-    print(f"{'simulations per second':<34}{batched.n_simulations / wall:>20.1f}{peer.n_simulations / peer.wall_time_s:>22.1f}")
-    print(f"{'ensemble steps per second':<34}{steps_per_s:>20.3f}{peer_steps_per_s:>22.3f}")
-    print(f"{'min bulk ESS':<34}{np.min(ess_bulk):>20.0f}{'(same chain)':>22}")
-    print(f"{'min bulk ESS per second':<34}{np.min(ess_bulk) / wall:>20.2f}{ess_per_step * peer_steps_per_s:>22.2f}")
-    print(f"{'min tail ESS':<34}{np.min(ess_tail):>20.0f}")
-    print(f"{'min emcee ESS (walkers*L/tau)':<34}{np.min(ess_emcee):>20.0f}")
-    print(f"{'speed-up (ESS/s)':<34}{steps_per_s / peer_steps_per_s:>20.2f}x")
-    print(f"peer chain identical to the batched chain's first {peer.n_steps} steps: {same}")
-    print(f"max R-hat {table['r_hat'].max():.3f}; tau per ensemble max {batched.tau.max():.1f} steps; "
-          f"burn-in {batched.burn_in}, thin {batched.thin}; stopping rule met: {batched.converged}")
-    ok = np.min(ess_bulk) >= TARGET_ESS and wall <= TARGET_SECONDS
-    print(f"target >= {TARGET_ESS} ESS for every parameter in <= {TARGET_SECONDS:.0f} s: "
-          f"{'MET' if ok else 'NOT MET'} (min bulk ESS {np.min(ess_bulk):.0f} in {wall:.0f} s)")
-    print()
-    print(table[["mean", "sd", "crb_sd", "ess_bulk", "ess_tail", "r_hat"]].to_string(float_format=lambda v: f"{v:.4g}"))
+def _figures(res, n_chains: int) -> dict:
+    table = res.summary()
+    wall = res.wall_time_s
+    ratio = (table["sd"] / table["crb_sd"]).values
+    ess = float(table["ess_bulk"].min())
+    return {
+        "steps run": res.n_steps, "stopping rule met": str(res.converged), "simulations": res.n_simulations,
+        "wall time [s]": wall, "simulations per second": res.n_simulations / wall,
+        "acceptance": float(res.idata.sample_stats["acceptance_rate"].mean()),
+        "max tau [steps]": float(res.tau.max()),
+        "min bulk ESS": ess, "min tail ESS": float(table["ess_tail"].min()),
+        "min emcee ESS (chains*L/tau)": float(np.min(n_chains * (res.n_steps - res.burn_in) / res.tau.max(axis=0))),
+        "min bulk ESS per second": ess / wall, "min bulk ESS per 1000 sims": 1000 * ess / res.n_simulations,
+        "max R-hat": float(table["r_hat"].max()), "sd/CRB min": float(ratio.min()), "sd/CRB max": float(ratio.max()),
+    }
 
 
 def _same_prefix(batched, peer) -> bool:
-    """Compare the peer's raw chain with the batched one's over the peer's length."""
-    # the exports are burnt-in and thinned differently; compare the un-thinned raw chains
-    # through the draws both kept at the same step indices
+    """Compare the peer's chain with the batched one's at the step indices both kept."""
     a, b = batched, peer
     steps_a = a.burn_in + a.thin * np.arange(a.idata.posterior.sizes["draw"])
     steps_b = b.burn_in + b.thin * np.arange(b.idata.posterior.sizes["draw"])

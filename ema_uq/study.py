@@ -68,6 +68,64 @@ def _check_semantics(study: dict, source: str) -> None:
         for ch in channels:
             if ch not in model.outputs:
                 raise StudyError(f"{source}: key 'data.channels': unknown channel {ch!r} for {model.name}")
+    _check_uq_sections(study, model, source)
+    _check_gap_section(study, model, source)
+
+
+def _check_gap_section(study: dict, model, source: str) -> None:
+    """Hidden rig effects and diagnosis candidates must be effects of the concept."""
+    from .models.effects import parse_effect
+
+    gap = section(study, "gap")
+    available = model.available_effects
+    for spec in gap["rig_effects"]:
+        try:
+            name, values = parse_effect(spec, model.effect_catalogue)
+            model.with_effects([name], values)
+        except ValueError as exc:
+            raise StudyError(f"{source}: key 'gap.rig_effects': {exc}") from None
+    for name in gap["candidates"] or []:
+        if name not in available:
+            raise StudyError(f"{source}: key 'gap.candidates': effect {name!r} is not available for {model.name}; "
+                             f"available: {', '.join(available)}")
+
+
+def section(study: dict[str, Any], name: str) -> dict[str, Any]:
+    """A top-level section of a study with the schema defaults filled in (also for a study
+    dict that did not go through :func:`validate_study`)."""
+    sub = schema()["properties"][name]
+    node = json.loads(json.dumps(study.get(name) or {}))
+    _fill_defaults(node, sub)
+    return node
+
+
+def _check_uq_sections(study: dict, model, source: str) -> None:
+    """Names in the sensitivity and identifiability sections must exist in the concept."""
+    sens = section(study, "sensitivity")
+    n_base = sens["n_base"]
+    if n_base & (n_base - 1):
+        raise StudyError(f"{source}: key 'sensitivity.n_base': {n_base} is not a power of 2 (Sobol sequences "
+                         f"need one); use e.g. {1 << (n_base.bit_length() - 1)} or {1 << n_base.bit_length()}")
+    for name, (lower, upper) in sens["parameters"].items():
+        if name not in model.parameters:
+            raise StudyError(f"{source}: key 'sensitivity.parameters': unknown parameter {name!r} for {model.name}")
+        p = model.parameters[name]
+        if not (p.lower <= lower < upper <= p.upper):
+            raise StudyError(f"{source}: key 'sensitivity.parameters.{name}': range [{lower:g}, {upper:g}] must have "
+                             f"lower < upper inside the bounds [{p.lower:g}, {p.upper:g}]")
+    for ch in sens["rms_channels"] or []:
+        if ch not in model.outputs:
+            raise StudyError(f"{source}: key 'sensitivity.rms_channels': unknown channel {ch!r} for {model.name}")
+    ident = section(study, "identifiability")
+    for name in ident["profile_parameters"] or []:
+        if name not in model.parameters:
+            raise StudyError(f"{source}: key 'identifiability.profile_parameters': unknown parameter {name!r} "
+                             f"for {model.name}")
+    for item in ident["sensor_sets"]:
+        for ch in item["channels"] if isinstance(item, dict) else []:
+            if ch not in model.outputs:
+                raise StudyError(f"{source}: key 'identifiability.sensor_sets.{item['name']}': unknown channel "
+                                 f"{ch!r} for {model.name}")
 
 
 def load_study(path: str | Path) -> dict[str, Any]:

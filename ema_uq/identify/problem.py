@@ -48,13 +48,16 @@ class FitProblem:
         default: the concept's own set.
     channels : fitted output channels (default: every channel present in all measurements).
     constants : design constants vector (default: nominal).
+    model : the model to fit (default: the measurements' concept). An augmented model
+        (``Model.with_effects``) is allowed when it is built on the measurements' concept;
+        its parameter layout (base + effect parameters) then sets ``parameters``.
     """
 
     measurements: Sequence[Measurement]
     parameters: ParameterSet | None = None
     channels: Sequence[str] | None = None
     constants: np.ndarray | None = None
-    model: Model = field(init=False)
+    model: Model | None = None
     blocks: tuple[_Block, ...] = field(init=False, repr=False)
     channel_index: np.ndarray = field(init=False, repr=False)
 
@@ -67,7 +70,14 @@ class FitProblem:
             raise IdentificationError(
                 f"measurements mix concepts {sorted(concepts)}; fit one concept at a time"
             )
-        model = get_model(measurements[0].concept)
+        concept = measurements[0].concept
+        model = get_model(concept) if self.model is None else self.model
+        base = getattr(model, "base_model", None) or model
+        if base.name != concept:
+            raise IdentificationError(
+                f"model {model.name} is built on concept {base.name}, but the measurements are of concept "
+                f"{concept}; use a model of the data's concept"
+            )
         parameters = model.parameters if self.parameters is None else self.parameters
         if parameters.names != model.parameters.names:
             raise IdentificationError(

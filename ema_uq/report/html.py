@@ -32,6 +32,8 @@ def _table(header: list[str], rows: list[list[Any]], name_cols: int = 1) -> str:
 
 
 def _fmt(x: float | None, digits: int = 5) -> str:
+    if isinstance(x, str):
+        return html.escape(x)
     if x is None or not np.isfinite(x):
         return '<span class="muted">–</span>'
     return f"{x:.{digits}g}"

@@ -221,6 +221,150 @@ def test_known_sigma_run_records_its_sigma(problem, fit):
 
 
 # --------------------------------------------------------------------------------------
+# moves and the stopping rule
+# --------------------------------------------------------------------------------------
+def test_student_t_proposal_matches_scipy():
+    from scipy import stats
+
+    rng = np.random.default_rng(2)
+    a = rng.standard_normal((4, 4))
+    scale = a @ a.T + 4 * np.eye(4)
+    center = rng.standard_normal(4)
+    q = bayes.StudentTProposal(center, np.linalg.cholesky(scale), 10.0)
+    x = center + 3 * rng.standard_normal((6, 4))
+    np.testing.assert_allclose(q.logpdf(x), stats.multivariate_t(center, scale, df=10.0).logpdf(x), rtol=1e-12)
+    draws = q.draw(np.random.RandomState(0), 200_000)
+    np.testing.assert_allclose(np.cov(draws.T), scale * 10 / 8, rtol=0, atol=0.03 * np.max(np.diag(scale)))
+    # squared Mahalanobis distance / d of a t_ν draw is F(d, ν) distributed
+    z = np.linalg.solve(np.linalg.cholesky(scale), (draws[:20_000] - center).T)
+    assert stats.kstest(np.sum(z * z, axis=0) / 4, stats.f(4, 10).cdf).pvalue > 1e-3
+
+
+def test_independence_move_leaves_the_target_exactly_invariant():
+    """A proposal off-centre by 0.8 sd and twice too wide still samples N(m, C) exactly: the
+    proposal density ratio enters the acceptance. The same move without that ratio samples
+    ∝ π·q instead, visibly shifted towards the proposal's centre (the test can fail)."""
+    m = np.array([1.0, -2.0, 0.5])
+    sd = np.array([1.0, 0.1, 3.0])
+    corr = np.array([[1.0, 0.6, -0.3], [0.6, 1.0, 0.2], [-0.3, 0.2, 1.0]])
+    cov = corr * np.outer(sd, sd)
+    icov = np.linalg.inv(cov)
+
+    def log_prob(x):
+        d = x - m
+        return -0.5 * np.einsum("ni,ij,nj->n", d, icov, d)
+
+    proposal = bayes.StudentTProposal(m + 0.8 * sd, np.linalg.cholesky(2.0 * cov), 10.0)
+    exact = bayes._independence_move(proposal)
+    naive = emcee.moves.MHMove(lambda coords, random: (proposal.draw(random, coords.shape[0]),
+                                                       np.zeros(coords.shape[0])))
+
+    def draws(move):
+        sampler = emcee.EnsembleSampler(64, 3, log_prob, vectorize=True, moves=move)
+        sampler.random_state = np.random.RandomState(7).get_state()
+        start = m + np.random.default_rng(1).standard_normal((64, 3)) * sd
+        sampler.run_mcmc(start, 650)
+        return sampler.get_chain(discard=50, flat=True)
+
+    good = draws(exact)
+    z_mean = (good.mean(axis=0) - m) / sd
+    assert np.all(np.abs(z_mean) < 0.05), z_mean               # MC error of the mean ~0.01 sd
+    np.testing.assert_allclose(np.cov(good.T) / np.outer(sd, sd), corr, atol=0.05)
+    biased = (draws(naive).mean(axis=0) - m) / sd
+    assert np.max(np.abs(biased)) > 0.15, biased                 # π·q is shifted by ~0.27 sd
+
+
+def ar1_chains(rng, phi, n, walkers, n_free, n_ensembles):
+    """AR(1) chains with unit marginal variance, τ = (1 + φ)/(1 - φ)."""
+    out = []
+    for _ in range(n_ensembles):
+        x = np.empty((n, walkers, n_free))
+        x[0] = rng.standard_normal((walkers, n_free))
+        for t in range(1, n):
+            x[t] = phi * x[t - 1] + np.sqrt(1 - phi ** 2) * rng.standard_normal((walkers, n_free))
+        out.append(x)
+    return out
+
+
+def test_stopping_rule_on_synthetic_chains():
+    rng = np.random.default_rng(0)
+    # independent draws (τ = 1): stop. The bare 1 % rule would not: its τ estimate moves by
+    # more than 1 % between checks from noise alone.
+    iid = [rng.standard_normal((300, 16, 3)) for _ in range(2)]
+    check = bayes.check_stop(iid, 300, 50)
+    assert check.converged, check.missing
+    assert check.max_rhat < 1.01 and min(check.min_ess_bulk, check.min_ess_tail) > 5000
+    assert (check.burn_in, check.thin) == (int(np.ceil(2 * check.tau.max())), 1)
+    prev = np.array([bayes.autocorr_times(c[:250]) for c in iid])
+    assert np.max(np.abs(check.tau - prev) / check.tau) > 0.01
+
+    # τ = 19 (φ = 0.9): 300 steps are fewer than 50 τ
+    slow = bayes.check_stop(ar1_chains(rng, 0.9, 300, 16, 3, 2), 300, 50)
+    assert not slow.converged and slow.missing[0].startswith("50 tau")
+    assert 12 < slow.tau.max() < 30
+    # one ensemble off by half a standard deviation: R-hat says no
+    shifted = bayes.check_stop([iid[0], iid[1] + np.array([0.0, 0.5, 0.0])], 300, 50)
+    assert shifted.missing == ("R-hat < 1.01",), shifted.missing
+    # too few draws: 2 walkers x 2 ensembles x 90 steps
+    few = bayes.check_stop([c[:90, :2] for c in iid], 90, 30)
+    assert "ESS >= 400" in few.missing
+
+    # the τ tolerance: Sokal's standard error of the change, never below 1 %
+    tol = bayes.tau_change_tolerance(np.array([2.0]), 200, 50, 16)
+    np.testing.assert_allclose(tol, [3 * np.sqrt(2 * (2 * 5 * 2.0 + 1) / (200 * 16) * 50 / 150)], rtol=1e-12)
+    assert bayes.tau_change_tolerance(np.array([50.0]), 10 ** 8, 100, 32)[0] == 0.01
+
+
+@pytest.mark.parametrize("moves", ["independence", "de", "stretch"])
+def test_every_move_kind_evaluates_walkers_in_batches_and_is_recorded(problem, fit, moves, monkeypatch):
+    calls, placed = [], {}
+    call, place = LogPosterior.__call__, bayes.place_walkers
+
+    def counting(self, free):
+        calls.append(np.atleast_2d(free).shape[0])
+        return call(self, free)
+
+    def placing(*args, **kwargs):
+        out = place(*args, **kwargs)
+        placed["at"] = len(calls)
+        return out
+
+    monkeypatch.setattr(LogPosterior, "__call__", counting)
+    monkeypatch.setattr(bayes, "place_walkers", placing)
+    settings = SamplerSettings(n_walkers=8, n_ensembles=1, max_steps=24, check_every=24, moves=moves, n_predictive=0)
+    res = bayes.sample(problem, fit, settings=settings, seed=1, predictive=False)
+    sampling = calls[placed["at"]:]
+    # every step evaluates every walker once: all 8 in one call (independence), two halves
+    # of 4 (DE, stretch) or four quarters (DE snooker); never one walker per call
+    assert sum(sampling) == (1 + 24) * 8 and set(sampling) <= {2, 4, 8}   # start + 24 steps
+    assert (8 in sampling[1:]) == (moves == "independence")
+    assert res.attrs["moves"] == moves
+    assert ("Student-t df 20" in res.attrs["move_mix"]) == (moves == "independence")
+    assert 0.05 < float(res.idata.sample_stats["acceptance_rate"].mean()) < 0.95
+
+
+@pytest.mark.parametrize("changes, message", [
+    ({"moves": "gibbs"}, "unknown moves 'gibbs'; choose independence, de, stretch"),
+    ({"proposal_df": 2.0}, "degrees of freedom must be above 2"),
+    ({"independence_weight": 0.0}, "weight must be in"),
+    ({"proposal_scale": -1.0}, "proposal scale must be a positive number"),
+])
+def test_bad_move_settings_are_refused(problem, fit, changes, message):
+    with pytest.raises(BayesError, match=message):
+        bayes.sample(problem, fit, settings=SamplerSettings(**{**FAST.__dict__, **changes}))
+
+
+def test_a_singular_cramer_rao_covariance_is_refused(problem, fit):
+    import dataclasses
+
+    cov = np.array(fit.covariance, dtype=float)
+    cov[2] = cov[1]
+    cov[:, 2] = cov[:, 1]                                     # C_TS1 a copy of B_TS1: rank 2
+    with pytest.raises(BayesError, match="covariance is not positive definite; fix the non-identifiable"):
+        bayes.sample(problem, dataclasses.replace(fit, covariance=cov), settings=FAST)
+
+
+# --------------------------------------------------------------------------------------
 # bad input
 # --------------------------------------------------------------------------------------
 def test_init_of_another_concept_is_refused(problem, fit):
@@ -259,8 +403,10 @@ def test_walkers_that_cannot_be_placed_are_refused(problem, fit):
     tiny = 1e-9 * fit.std[0]
     with pytest.raises(BayesError, match="cannot place 16 walkers"):
         bayes.sample(problem, fit, priors={"J": ("uniform", ml - tiny, ml + tiny)}, settings=FAST)
-    with pytest.raises(BayesError, match="at least 2 x 3 = 6"):
+    with pytest.raises(BayesError, match="even number of at least 6"):
         bayes.sample(problem, fit, settings=SamplerSettings(n_walkers=4))
+    with pytest.raises(BayesError, match="de move needs at least 2 x 3 = 6"):
+        bayes.sample(problem, fit, settings=SamplerSettings(n_walkers=4, moves="de"))
 
 
 # --------------------------------------------------------------------------------------
@@ -268,6 +414,25 @@ def test_walkers_that_cannot_be_placed_are_refused(problem, fit):
 # --------------------------------------------------------------------------------------
 def run_cli(*args):
     return subprocess.run([sys.executable, "-m", "ema_uq", *args], capture_output=True, text=True, timeout=300)
+
+
+def test_study_sample_section_agrees_with_the_settings_and_the_cli():
+    from pathlib import Path
+
+    from ema_uq.cli import build_parser
+    from ema_uq.study import load_study
+
+    section = load_study(Path(__file__).parents[2] / "studies" / "htls.yaml")["sample"]
+    keys = ("walkers", "ensembles", "max_steps", "check_every", "moves")
+    d = SamplerSettings()
+    assert tuple(section[k] for k in keys) == (d.n_walkers, d.n_ensembles, d.max_steps, d.check_every, d.moves)
+    base = ["sample", "d.nc", "--concept", "htls", "--init", "f.json", "--out", "p.nc"]
+    defaults = build_parser().parse_args(base)
+    assert (defaults.walkers, defaults.chains, defaults.max_steps, defaults.check_every, defaults.moves) == \
+        tuple(section[k] for k in keys)
+    given = build_parser().parse_args(base + ["--walkers", "8", "--ensembles", "3", "--max-steps", "100",
+                                              "--check-every", "25", "--moves", "de"])
+    assert (given.walkers, given.chains, given.max_steps, given.check_every, given.moves) == (8, 3, 100, 25, "de")
 
 
 def test_sample_verb_end_to_end_and_errors(data, fit, tmp_path):
@@ -298,7 +463,7 @@ def test_sample_verb_end_to_end_and_errors(data, fit, tmp_path):
         (["--prior", "J=uniform:5,1"], "lower bound not below upper bound"),
         (["--prior", "J=uniform:1,2"], "cannot place walkers"),
         (["--prior", "k_n=uniform:1,2"], "k_n is fixed"),
-        (["--walkers", "4"], "at least 2 x 3 = 6"),
+        (["--walkers", "4"], "even number of at least 6"),
         (["--spread", "-1"], "--spread must be a positive number"),
     ]:
         args = list(common)

@@ -8,13 +8,14 @@ import shutil
 import subprocess
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
 ROOT = Path(__file__).resolve().parents[2]
 WORKFLOW_FILES = ["Snakefile", "config", "studies", "report"]
 TEMPLATE = ROOT / "ema_uq/report/templates/report.html"
-VOLATILE = {"wall_time_s", "created"}
+VOLATILE = {"wall_time_s", "created", "evaluation_time_s", "analysis_time_s", "evaluations_per_s"}
 
 pytestmark = pytest.mark.skipif(shutil.which("snakemake") is None, reason="snakemake not installed")
 
@@ -77,9 +78,19 @@ def smoke_run(tmp_path_factory) -> Path:
 
 
 def test_default_dry_run_plans_every_study(tmp_path):
+    from ema_uq.io import emps_files
+    from ema_uq.study import load_study
+
     workdir = copy_workflow(tmp_path)
     jobs = planned_jobs(snakemake(workdir, "-n"))
-    assert jobs["simulate"] == 4 and jobs["identify"] == 4 and jobs["report"] == 2, jobs
+    emps = all(p.is_file() for p in emps_files(load_study(ROOT / "studies/emps.yaml"), must_exist=False).values())
+    synthetic, real = 2, int(emps)
+    # per EMA study: estimation, validation and the two rig-like records; Sobol chunks from the studies
+    assert jobs["simulate"] == 4 * synthetic, jobs
+    assert jobs["identify"] == 2 * (synthetic + real) and jobs["report"] == synthetic + real, jobs
+    assert jobs["sample"] == jobs["gap"] == synthetic + real, jobs
+    assert jobs["identifiability"] == jobs["sensitivity"] == jobs["gap_selfcheck"] == synthetic, jobs
+    assert jobs["sensitivity_chunk"] == 16, jobs
 
 
 def test_lint_reports_only_the_explained_conda_finding(tmp_path):
@@ -95,6 +106,15 @@ def test_smoke_study_runs_end_to_end(smoke_run):
     assert report.stat().st_size > 10_000
     text = report.read_text()
     assert "data:image/png;base64" in text and "Provenance" in text
+    for section in ('id="posterior"', 'id="sobol"', 'id="identifiability"', 'id="gap"', 'id="selfcheck"',
+                    'id="cost"'):
+        assert section in text, section
+    assert "Stages not run" not in text
+    results = smoke_run / "results/smoke"
+    for name in ("posterior.nc", "sobol.json", "ident.json", "gap.json", "selfcheck.json", "gap_ledger.png"):
+        assert (results / name).stat().st_size > 0, name
+    gap = json.loads((results / "gap.json").read_text())
+    assert gap["verdict"] == "effect" and gap["effect"] == "sensor_delay"  # the study's hidden effect
     for method in ("gn", "lm"):
         fit = json.loads((smoke_run / f"results/smoke/fit_{method}.json").read_text())
         assert fit["converged"]
@@ -116,10 +136,15 @@ def test_report_opens_in_headless_chromium_without_console_errors(smoke_run, tmp
 def test_rerun_reproduces_every_number(smoke_run, tmp_path):
     again = copy_workflow(tmp_path)
     snakemake(again, *SMOKE)
-    for method in ("gn", "lm"):
-        first = numbers_of(json.loads((smoke_run / f"results/smoke/fit_{method}.json").read_text()))
-        second = numbers_of(json.loads((again / f"results/smoke/fit_{method}.json").read_text()))
-        assert first == second
+    for name in ("fit_gn.json", "fit_lm.json", "sobol.json", "ident.json", "gap.json", "selfcheck.json"):
+        first = numbers_of(json.loads((smoke_run / "results/smoke" / name).read_text()))
+        second = numbers_of(json.loads((again / "results/smoke" / name).read_text()))
+        assert first == second, name
+    import xarray as xr
+
+    with xr.open_dataset(smoke_run / "results/smoke/posterior.nc", group="posterior") as a, \
+            xr.open_dataset(again / "results/smoke/posterior.nc", group="posterior") as b:
+        assert all(np.array_equal(a[v].values, b[v].values) for v in a.data_vars)
 
 
 def test_editing_the_report_template_reruns_only_the_report(smoke_run):
@@ -135,8 +160,11 @@ def test_editing_the_report_template_reruns_only_the_report(smoke_run):
 
 
 @pytest.mark.parametrize("section,key,value,expected", [
-    ("identify", "perturb", 0.1, {"identify": 2, "report": 1}),
-    ("data", "noise", 0.03, {"simulate": 2, "identify": 2, "report": 1}),
+    ("identify", "perturb", 0.1, {"identify": 2, "sample": 1, "identifiability": 1, "report": 1}),
+    ("data", "noise", 0.03, {"simulate": 4, "identify": 2, "sample": 1, "identifiability": 1, "gap": 1,
+                             "sensitivity_chunk": 2, "sensitivity": 1, "report": 1}),
+    ("sensitivity", "bootstrap", 30, {"sensitivity_chunk": 2, "sensitivity": 1, "report": 1}),
+    ("gap", "candidates", ["sensor_delay", "backlash"], {"gap": 1, "report": 1}),
 ])
 def test_changed_study_value_reruns_exactly_the_affected_rules(smoke_run, tmp_path, section, key, value, expected):
     workdir = tmp_path / "wf"

@@ -1,0 +1,52 @@
+"""EMPS gap figure (matplotlib only): the validation force residual of the nominal ML model and
+of the model with the selected effects, over time with the reference, and its RMS by regime."""
+from __future__ import annotations
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+
+def _force_residual(candidate, validation) -> np.ndarray:
+    from ..emps_report import simulate_record
+    from ..models import get_model
+
+    model = get_model("emps").with_effects(list(candidate.effects))
+    theta = model.parameters.vector({n: p["estimate"] for n, p in candidate.parameters.items()
+                                     if n in model.parameters})
+    y = simulate_record(model, theta, validation)
+    gtau = float(validation.attrs.get("gtau", 35.15))
+    return gtau * validation["vir"] - y[:, model.outputs.index("force")]
+
+
+def gap_figure(result, validation):
+    """Residual force [N] on the validation record before (nominal ML) and after (selected
+    effects), with the reference position on a grey right axis; right panel: RMS by regime."""
+    from ..emps_report import regime_masks
+
+    before = _force_residual(result.nominal, validation)
+    after = _force_residual(result.final, validation)
+    t = validation.time
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(12, 3.6), gridspec_kw={"width_ratios": [3, 1]})
+    ax.plot(t, before, lw=0.5, color="tab:red", label="nominal model")
+    ax.plot(t, after, lw=0.5, color="tab:blue", label=" + ".join(result.selected) or "nominal")
+    ax.set_xlabel("time [s] (validation record)")
+    ax.set_ylabel("force residual [N]")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="upper left")
+    ref = ax.twinx()
+    ref.plot(t, validation["qg"], color="0.6", lw=0.8)
+    ref.set_ylabel("reference qg [m]", color="0.5")
+    masks = regime_masks(validation)
+    names = list(masks)
+    x = np.arange(len(names))
+    rms = lambda r, m: float(np.sqrt(np.mean(r[m] ** 2))) if np.any(m) else 0.0  # noqa: E731
+    bx.bar(x - 0.2, [rms(before, masks[n]) for n in names], 0.4, color="tab:red", label="before")
+    bx.bar(x + 0.2, [rms(after, masks[n]) for n in names], 0.4, color="tab:blue", label="after")
+    bx.set_xticks(x, [n.replace("_", " ") for n in names], rotation=45, ha="right", fontsize=7)
+    bx.set_ylabel("RMS force residual [N]")
+    bx.legend(fontsize=7)
+    fig.tight_layout()
+    return fig

@@ -1,0 +1,90 @@
+"""The gap ledger figure (matplotlib only here): where the nominal model's gap sits over
+time (with the flap command) and by operating regime and channel, before and after the
+winning effect of a :class:`~ema_uq.gap.GapResult`. Returns a Figure; nothing is shown or saved."""
+from __future__ import annotations
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+BEFORE = dict(color="tab:red", label="nominal model")
+AFTER = dict(color="tab:blue")
+COMMAND = dict(color="0.45", lw=0.9, ls="--")
+
+
+def _after_label(result) -> str:
+    name = result.gap.get("effect_of_after") or (result.best.effect if result.best else None)
+    return f"+ {name}" if name else "after"
+
+
+def _time_panel(ax, before: dict, after: dict | None, title: str, after_label: str) -> None:
+    t = np.asarray(before["time"])
+    ax.step(t, before["systematic_nrmse"], where="mid", lw=1.3, **BEFORE)
+    if after and after.get("time"):
+        ax.step(after["time"], after["systematic_nrmse"], where="mid", lw=1.3, label=after_label,
+                **{k: v for k, v in AFTER.items()})
+    ax.set_ylabel("systematic NRMSE", fontsize=8)
+    ax.set_title(title, fontsize=9, loc="left")
+    ax.grid(alpha=0.3)
+    ax.tick_params(labelsize=7)
+    twin = ax.twinx()
+    twin.plot(t, before["phi_r_deg"], label="flap command φ_r", **COMMAND)
+    twin.set_ylabel("φ_r [deg]", fontsize=8, color="0.35")
+    twin.tick_params(labelsize=7, colors="0.35")
+    lines = ax.get_legend_handles_labels()
+    more = twin.get_legend_handles_labels()
+    ax.legend(lines[0] + more[0], lines[1] + more[1], fontsize=7, loc="upper right")
+
+
+def gap_ledger(result):
+    """Gap ledger of a diagnosis: one time panel per record (estimation, then held-out) with
+    the systematic NRMSE per window before and after the winning effect and the flap command,
+    then the systematic NRMSE by regime and by channel (estimation data) before and after."""
+    loc, after = result.localization, result.localization_after
+    label = _after_label(result)
+    panels = []
+    for before_loc, after_loc in ((loc, after), (result.localization_held_out, result.localization_after_held_out)):
+        panels += [(name, before_loc.windows[name], after_loc.windows.get(name) if after_loc else None)
+                   for name in before_loc.windows]
+    n_time = len(panels)
+    fig = plt.figure(figsize=(11, 2.3 * n_time + 3.4))
+    grid = fig.add_gridspec(n_time + 1, 2, height_ratios=[1.0] * n_time + [1.35], hspace=0.55, wspace=0.25)
+    for i, (title, before, aft) in enumerate(panels):
+        _time_panel(fig.add_subplot(grid[i, :]), before, aft, title, label)
+
+    regimes = [r for r in loc.regimes if np.isfinite(r.systematic_nrmse)]
+    names = [r.name for r in regimes]
+    x = np.arange(len(names))
+    ax = fig.add_subplot(grid[n_time, 0])
+    ax.bar(x - 0.2, [r.systematic_nrmse for r in regimes], width=0.4, **BEFORE)
+    if after is not None:
+        after_by = {r.name: r.systematic_nrmse for r in after.regimes}
+        ax.bar(x + 0.2, [after_by.get(n, np.nan) for n in names], width=0.4, label=label, **AFTER)
+    held = set(result.where.get("regimes", []))
+    ax.set_xticks(x, [f"{n}{' *' if n in held else ''}" for n in names], rotation=30, ha="right", fontsize=7)
+    ax.set_ylabel("systematic NRMSE", fontsize=8)
+    ax.set_title("by regime (* holds the gap)", fontsize=9, loc="left")
+    ax.tick_params(labelsize=7)
+    ax.grid(alpha=0.3, axis="y")
+    ax.legend(fontsize=7)
+
+    channels = sorted(loc.channels, key=lambda c: -c.systematic_nrmse)[:10]
+    x = np.arange(len(channels))
+    ax = fig.add_subplot(grid[n_time, 1])
+    ax.bar(x - 0.2, [c.systematic_nrmse for c in channels], width=0.4, **BEFORE)
+    if after is not None:
+        after_by = {c.channel: c.systematic_nrmse for c in after.channels}
+        ax.bar(x + 0.2, [after_by.get(c.channel, np.nan) for c in channels], width=0.4, label=label, **AFTER)
+    ax.set_xticks(x, [c.channel for c in channels], rotation=30, ha="right", fontsize=7)
+    ax.set_title("by channel (largest 10)", fontsize=9, loc="left")
+    ax.tick_params(labelsize=7)
+    ax.grid(alpha=0.3, axis="y")
+
+    verdict = {"effect": f"effect {result.effect} ({result.confidence} confidence)", "none": "no significant gap",
+               "unexplained": "unexplained gap"}[result.verdict]
+    fig.suptitle(f"Gap ledger, {result.concept}: {verdict}; held-out systematic NRMSE "
+                 f"{result.gap['before']:.3g} -> {result.gap['after']:.3g} (shrink {result.gap['shrink']:.2f})",
+                 fontsize=10)
+    return fig

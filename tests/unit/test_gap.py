@@ -1,0 +1,344 @@
+"""Sim-to-real gap diagnosis: the systematic-energy estimator against analytic answers,
+localisation of residuals with a known injected structure, the FitProblem ``model``
+argument, quick end-to-end diagnoses of one HT/LS case per verdict kind (restricted
+candidate lists keep them fast), the GAP.json contract, the ledger figure, the self-check
+case generator, bad input, and (slow) the full blind self-check against its acceptance.
+"""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from ema_uq import Measurement, get_model, io, simulate_batch, synthesize
+from ema_uq.cli import main
+from ema_uq.experiments import add_noise, deploy_retract, validation
+from ema_uq.gap import GapError, GapResult, ResidualRecord, diagnose, localize, split_holdout, systematic_nrmse
+from ema_uq.gap.localize import LAG_NORM, LAG_WEIGHTS, lag_products
+from ema_uq.gap import selfcheck
+from ema_uq.identify import FitProblem, IdentificationError
+
+DT = 0.01
+
+
+# --------------------------------------------------------------------------------------
+# the estimator
+# --------------------------------------------------------------------------------------
+def test_lag_products_are_unbiased_for_noise_and_count_low_frequency_energy():
+    rng = np.random.default_rng(0)
+    n = 200_000
+    noise = rng.standard_normal((n, 1)) * 3.0
+    p = lag_products(noise)
+    # white noise: mean 0 within 4 standard deviations σ² sqrt(Σw² / n)
+    assert abs(np.nanmean(p)) < 4 * 9.0 * np.sqrt(LAG_NORM / n)
+    t = np.arange(n) * DT
+    for f, weight in ((0.5, 0.995), (2.0, 0.915), (5.0, 0.531)):
+        s = np.sin(2 * np.pi * f * t)[:, None]
+        # W(f) = Σ w_l cos(2π f l Δt): analytic weight of a sinusoid of energy 1/2
+        expected = sum(w * np.cos(2 * np.pi * f * (l + 1) * DT) for l, w in enumerate(LAG_WEIGHTS))
+        assert expected == pytest.approx(weight, abs=1e-3)
+        assert np.nanmean(lag_products(s)) / 0.5 == pytest.approx(expected, rel=1e-3)
+
+
+def test_systematic_nrmse_of_an_offset_plus_noise():
+    rng = np.random.default_rng(1)
+    n, rms = 20_000, np.array([2.0, 5.0])
+    offset = np.array([0.1, 0.0])                      # systematic NRMSE 0.05 and 0
+    e = offset + rng.standard_normal((n, 2)) * 0.04 * rms
+    total, per_channel, z, factors = systematic_nrmse([e], rms)
+    assert per_channel[0] == pytest.approx(0.05, rel=0.05)
+    assert per_channel[1] < 0.01
+    assert total == pytest.approx(np.sqrt((0.05 ** 2 + 0.0) / 2), rel=0.1)
+    assert z > 20 and factors == 0
+    # noise alone: z is a standard score
+    assert abs(systematic_nrmse([rng.standard_normal((n, 2))], rms)[2]) < 4
+
+
+def test_broadband_error_shared_by_channels_is_counted_and_independent_noise_is_not():
+    rng = np.random.default_rng(2)
+    n, m = 4000, 12
+    shared = rng.standard_normal(n)                     # white in time: lag products cannot see it
+    e = rng.standard_normal((n, m)) * rng.uniform(0.5, 1.0, m)
+    noise_only = systematic_nrmse([e], np.sqrt(np.mean(e ** 2, axis=0)))
+    assert noise_only[3] == 0 and noise_only[0] < 0.01
+    e[:, :6] += 0.4 * shared[:, None] * np.arange(1, 7)
+    rms = np.sqrt(np.mean(e ** 2, axis=0))
+    total, per_channel, _, factors = systematic_nrmse([e], rms)
+    truth = (0.4 * np.arange(1, 7)) / rms[:6]
+    assert factors == 1
+    # per channel within 4 standard deviations of the lag products of its noise, σ² / sqrt(n)
+    np.testing.assert_allclose(per_channel[:6] ** 2, truth ** 2, atol=4 * 1.0 / np.sqrt(n) / rms[:6].min() ** 2)
+    assert np.all(per_channel[6:] ** 2 < 4 / np.sqrt(n))      # noise-only channels: 4 σ of the lag products
+    assert total == pytest.approx(np.sqrt(np.sum(truth ** 2) / m), rel=0.1)
+
+
+# --------------------------------------------------------------------------------------
+# localisation on residuals with a known structure
+# --------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def htls_clean():
+    model = get_model("htls")
+    experiment = deploy_retract()
+    inputs = experiment.input_matrix(model)
+    out = simulate_batch(model, model.parameters.nominal, experiment.time, inputs)
+    return model, experiment, inputs, out
+
+
+def _record(htls_clean, observed):
+    model, experiment, inputs, out = htls_clean
+    return ResidualRecord("dr", experiment.time, inputs, observed, out, out)
+
+
+def test_white_residual_is_not_structured(htls_clean):
+    model, _, _, out = htls_clean
+    observed = add_noise(out, 0.02, np.random.default_rng(2))
+    loc = localize([_record(htls_clean, observed)], model.outputs, model, model.parameters.nominal)
+    assert not loc.structured, loc.reasons
+    assert loc.where_regimes == [] and loc.where_channels() == []
+
+
+def test_injected_delay_is_localised_with_its_size(htls_clean):
+    model, _, _, out = htls_clean
+    delayed = np.vstack([np.repeat(out[:2], 2, axis=0)[:2], out[:-2]])   # 2 samples = 20 ms late
+    observed = add_noise(delayed, 0.02, np.random.default_rng(3))
+    loc = localize([_record(htls_clean, observed)], model.outputs, model, model.parameters.nominal)
+    assert loc.structured
+    assert "delay" in loc.where_regimes
+    omega = next(c for c in loc.channels if c.channel == "Omega")
+    assert omega.delay_s == pytest.approx(0.020, abs=0.003)
+    assert loc.signature_match(("delay",)) == 1.0
+
+
+def test_injected_reversal_error_is_localised(htls_clean):
+    model, experiment, _, out = htls_clean
+    observed = out.copy()
+    # a speed error for 0.3 s after the retraction starts (t = 24 s), as a dead band would give
+    bump = np.exp(-((experiment.time - 24.2) / 0.12) ** 2)
+    observed[:, model.outputs.index("Omega")] += 3.0 * bump
+    observed = add_noise(observed, 0.02, np.random.default_rng(4))
+    loc = localize([_record(htls_clean, observed)], model.outputs, model, model.parameters.nominal)
+    assert loc.where_channels()[0] == "Omega"
+    assert "reversal" in loc.where_regimes
+    held = [loc.regime(name) for name in loc.where_regimes]
+    assert max(held, key=lambda r: r.enrichment).name == "reversal"    # the most specific regime
+    assert loc.regime("reversal").enrichment > 10
+    window = loc.windows["dr"]
+    worst = window["time"][int(np.argmax(window["systematic_nrmse"]))]
+    assert 23.5 < worst < 25.0
+
+
+def test_injected_shaft_order_ripple_is_a_periodic_peak(htls_clean):
+    model, experiment, _, out = htls_clean
+    omega = out[:, model.outputs.index("Omega")]
+    angle = np.concatenate([[0.0], np.cumsum(0.5 * (omega[1:] + omega[:-1]) * DT)])
+    observed = out.copy()
+    observed[:, 0] += 0.4 * np.sin(angle)                      # order 1 of the motor
+    observed = add_noise(observed, 0.02, np.random.default_rng(5))
+    loc = localize([_record(htls_clean, observed)], model.outputs, model, model.parameters.nominal)
+    assert "periodic" in loc.where_regimes
+    peak = loc.peaks[0]
+    assert peak.channel == "Omega" and peak.order == pytest.approx(1.0)
+
+
+# --------------------------------------------------------------------------------------
+# FitProblem with an augmented model
+# --------------------------------------------------------------------------------------
+def test_fit_problem_takes_an_augmented_model_of_the_same_concept():
+    data = synthesize("htls", deploy_retract().slice(0, 300), noise=0.02, seed=1)
+    augmented = get_model("htls").with_effects(["sensor_delay"])
+    problem = FitProblem([data], model=augmented)
+    assert problem.model is augmented and problem.parameters.names[-1] == "sensor_delay_tau"
+    # at tau = 0 the augmented model predicts exactly what the nominal one does
+    theta = augmented.parameters.vector({"sensor_delay_tau": 0.0})
+    nominal = FitProblem([data]).predict(get_model("htls").parameters.nominal[None])
+    np.testing.assert_array_equal(problem.predict(theta[None]), nominal)
+    with pytest.raises(IdentificationError, match="built on concept lths"):
+        FitProblem([data], model=get_model("lths").with_effects(["sensor_delay"]))
+
+
+# --------------------------------------------------------------------------------------
+# end-to-end diagnoses (HT/LS, restricted candidates)
+# --------------------------------------------------------------------------------------
+CANDIDATES = ("load_dependent_friction", "sensor_delay")
+
+
+def _effect_data(name, seed):
+    base = get_model("htls")
+    model = base.with_effects([name])
+    theta = model.parameters.nominal
+    return (synthesize(model, deploy_retract(), theta, noise=0.02, seed=seed),
+            synthesize(model, validation(), theta, noise=0.02, seed=seed + 1))
+
+
+@pytest.fixture(scope="module")
+def effect_result():
+    est, val = _effect_data("load_dependent_friction", 31)
+    return diagnose([est], [val], candidates=CANDIDATES, seed=31)
+
+
+@pytest.fixture(scope="module")
+def none_result():
+    est = synthesize("htls", deploy_retract(), noise=0.02, seed=41)
+    return diagnose([est], candidates=CANDIDATES, seed=41)     # held out: last 30 %
+
+
+def test_effect_is_found_with_its_size(effect_result):
+    r = effect_result
+    assert r.verdict == "effect" and r.effect == "load_dependent_friction" and r.confidence == "high"
+    assert [c.effect for c in r.ranking] == list(CANDIDATES)
+    best = r.ranking[0]
+    assert best.delta_bic > 1000 and best.held_out_gain > 1000 and best.shrink > 0.8
+    mu = get_model("htls").effect_catalogue["load_dependent_friction"].parameters[0].nominal
+    p = r.effect_parameters["load_dependent_friction_mu"]
+    assert abs(p["estimate"] - mu) < 4 * p["std"]
+    assert r.gap["before"] > 5 * r.gap["after"]
+    assert {"M_TSER1", "M_TSER2"} <= set(r.where["channels"])
+    assert r.localization.structured and not r.localization_after.structured
+    assert not r.localization_after_held_out.structured
+
+
+def test_clean_data_give_none(none_result):
+    r = none_result
+    assert r.verdict == "none" and r.effect is None
+    assert not r.localization.structured
+    assert all(c.delta_bic < 10 for c in r.ranking)
+    assert r.held_out.startswith("last 30%")
+
+
+def test_out_of_catalogue_current_offset_is_unexplained():
+    case = selfcheck.Case("t", "htls", "out_of_catalogue", "current_sensor_error", "", 51)
+    est, val, truth = selfcheck.case_data(case)
+    assert "effect" not in est.attrs and truth["effect"]["offset"] == selfcheck.SENSOR_OFFSET
+    r = diagnose([est], [val], candidates=("sensor_delay",), seed=51)
+    assert r.verdict == "unexplained"
+    assert r.where["channels"][0] == "I_A"
+    assert selfcheck.is_correct(case, r)
+
+
+def test_gap_json_contract_and_round_trip(effect_result, tmp_path):
+    data = effect_result.to_json()
+    assert {"verdict", "effect", "ranking", "where"} <= set(data)
+    assert data["verdict"] in ("effect", "none", "unexplained")
+    for row in data["ranking"]:
+        assert {"effect", "score", "gap_before", "gap_after", "shrink"} <= set(row)
+        assert row["shrink"] == pytest.approx(1 - row["gap_after"] / row["gap_before"])
+    assert set(data["where"]) == {"channels", "regimes"}
+    path = tmp_path / "gap.json"
+    io.write_json(path, data)
+    back = GapResult.from_json(json.loads(path.read_text()))
+    assert back.verdict == effect_result.verdict and back.effect == effect_result.effect
+    assert back.ranking[0].shrink == pytest.approx(effect_result.ranking[0].shrink)
+    assert back.localization.where_regimes == effect_result.localization.where_regimes
+    assert "load_dependent_friction" in back.summary()
+
+
+def test_gap_ledger_figure(effect_result):
+    from ema_uq.report.gap_figures import gap_ledger
+
+    fig = gap_ledger(effect_result)
+    titles = [ax.get_title(loc="left") for ax in fig.axes]
+    assert any(t.startswith("estimation") for t in titles) and any(t.startswith("held-out") for t in titles)
+    assert "by regime (* holds the gap)" in titles
+    assert "load_dependent_friction" in fig._suptitle.get_text()
+
+
+# --------------------------------------------------------------------------------------
+# self-check cases
+# --------------------------------------------------------------------------------------
+def test_self_check_cases_cover_the_acceptance_set():
+    cases = selfcheck.build_cases(seed=2024)
+    assert len(cases) >= 30 and len({c.seed for c in cases}) == len(cases)
+    for concept in ("htls", "lths"):
+        for name in get_model(concept).available_effects:
+            mags = {c.magnitude for c in cases if c.concept == concept and c.truth == name}
+            assert mags == {"nominal", "half"}
+        assert sum(c.kind == "none" and c.concept == concept for c in cases) >= 2
+    assert {c.truth for c in cases if c.kind == "out_of_catalogue"} == set(selfcheck.OUT_OF_CATALOGUE)
+    assert not {c.seed for c in cases} & set(range(100, 105))     # never the calibration seeds
+
+
+def test_self_check_data_are_seeded_and_position_friction_acts_on_screw_1():
+    case = selfcheck.Case("t", "htls", "out_of_catalogue", "position_friction", "", 7)
+    a_est, a_val, truth = selfcheck.case_data(case)
+    b_est, _, _ = selfcheck.case_data(case)
+    np.testing.assert_array_equal(a_est.values, b_est.values)
+    model = get_model("htls")
+    theta = model.parameters.vector(truth["base"])
+    clean = simulate_batch(model, theta, a_est.time, a_est.experiment.input_matrix(model))
+    rms = np.sqrt(np.mean(clean ** 2, axis=0))
+    deviation = np.sqrt(np.mean((a_est.values - clean) ** 2, axis=0)) / rms
+    ch = model.outputs.index
+    assert deviation[ch("M_TSER1")] > 0.03            # the spot's friction (noise alone: 0.02)
+    assert deviation[ch("M_ER1")] == pytest.approx(0.02, abs=0.002)   # the load is untouched
+    assert deviation[ch("M_TSER2")] == pytest.approx(0.02, abs=0.002)
+
+
+# --------------------------------------------------------------------------------------
+# bad input
+# --------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("gap")
+    short = deploy_retract().slice(0, 400)
+    io.write_measurement(d / "htls.nc", synthesize("htls", short, noise=0.02, seed=1))
+    io.write_measurement(d / "lths.nc", synthesize("lths", short, noise=0.02, seed=1))
+    io.write_measurement(d / "htls_y.nc", synthesize("htls", short, noise=0.02, seed=2, channels=("y1", "y2")))
+    io.write_measurement(d / "htls_i.nc", synthesize("htls", short, noise=0.02, seed=3, channels=("I_A",)))
+    return d
+
+
+def _one_line_error(capsys, argv, *fragments):
+    assert main(argv) == 2
+    captured = capsys.readouterr()
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("ema-uq: error: "), captured.err
+    for fragment in fragments:
+        assert fragment in lines[0], lines[0]
+
+
+def test_cli_validation_data_of_another_concept(files, capsys):
+    _one_line_error(capsys, ["gap", str(files / "htls.nc"), "--concept", "htls", "--validate",
+                             str(files / "lths.nc"), "--out", str(files / "gap.json")], "lths.nc", "lths")
+    assert not (files / "gap.json").exists()
+
+
+def test_cli_validation_data_without_a_common_channel(files, capsys):
+    _one_line_error(capsys, ["gap", str(files / "htls_y.nc"), "--concept", "htls", "--validate",
+                             str(files / "htls_i.nc"), "--out", str(files / "gap.json")],
+                    "no channel in common", "y1")
+
+
+def test_cli_gap_writes_gap_json_and_the_ledger(tmp_path, capsys):
+    model = get_model("htls").with_effects(["load_dependent_friction"])
+    short = deploy_retract().slice(0, 1500)             # deploy to 20 deg and hold
+    io.write_measurement(tmp_path / "rig.nc", synthesize(model, short, model.parameters.nominal, noise=0.02, seed=8))
+    out, fig = tmp_path / "gap.json", tmp_path / "ledger.png"
+    assert main(["gap", str(tmp_path / "rig.nc"), "--concept", "htls", "--candidates", "load_dependent_friction",
+                 "--quiet", "--figure", str(fig), "--out", str(out)]) == 0
+    line = capsys.readouterr().out.strip()
+    assert line.startswith(f"wrote {out}") and "load_dependent_friction" in line
+    data = json.loads(out.read_text())
+    assert data["verdict"] == "effect" and data["effect"] == "load_dependent_friction"
+    assert data["held_out"].startswith("last 30%") and data["provenance"]["inputs"]
+    assert fig.stat().st_size > 10_000
+
+
+def test_library_refuses_mixed_concepts_and_unknown_candidates(files):
+    htls, lths = (io.read_measurement(files / f"{c}.nc") for c in ("htls", "lths"))
+    with pytest.raises(GapError, match="validation data are of concept lths"):
+        diagnose([htls], [lths])
+    with pytest.raises(GapError, match="unknown candidate effect"):
+        diagnose([htls], candidates=("gremlins",))
+    with pytest.raises(GapError, match="too few"):
+        split_holdout([htls.select(["y1"])], 0.9)
+
+
+# --------------------------------------------------------------------------------------
+# the full blind self-check (long)
+# --------------------------------------------------------------------------------------
+@pytest.mark.slow
+def test_full_blind_self_check_meets_the_acceptance():
+    result = selfcheck.self_check(seed=selfcheck.DEFAULT_SEED)
+    assert len(result.outcomes) >= 30
+    assert all(result.accepted.values()), result.summary()
