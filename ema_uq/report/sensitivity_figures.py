@@ -72,11 +72,12 @@ def sobol_bars(result, qoi: Sequence[str] | str | None = None, ncols: int = 2):
 
 def time_resolved(result, outputs: Sequence[str] | None = None, top: int = 5):
     """Total (solid, with 95 % band) and first-order (dashed) indices over time for the ``top``
-    parameters of each output (by mean ST), with the flap command φ_r on a grey right axis."""
+    parameters of each output (by mean ST), with the flap command φ_r on a grey right axis.
+    Estimates outside [-0.05, 1.05] (small designs) are clipped by the axis."""
     res = _sobol(result)
     outputs = list(outputs or res.time_resolved)
     fig, axes = plt.subplots(len(outputs), 1, figsize=(10, 2.6 * len(outputs) + 0.6), sharex=True, squeeze=False)
-    colors = plt.get_cmap("tab10")
+    palette = plt.get_cmap("tab10" if len(res.names) <= 10 else "tab20")
     for k, out in enumerate(outputs):
         ax = axes[k][0]
         tr = res.time_resolved[out]
@@ -85,8 +86,9 @@ def time_resolved(result, outputs: Sequence[str] | None = None, top: int = 5):
             mean_st = np.nanmean(np.where(np.isfinite(st), st, np.nan), axis=1) if np.any(np.isfinite(st)) \
                 else np.zeros(len(res.names))
         order = np.argsort(-np.nan_to_num(mean_st))[:top]
-        for c, j in enumerate(order):
-            color = colors(c)
+        for j in order:
+            # one colour per parameter in every panel; with tab20 the dark shades first
+            color = palette(j) if palette.N == 10 else palette((2 * j) % 20 + (2 * j) // 20 % 2)
             ax.plot(res.time, st[j], color=color, lw=1.2, label=res.names[j])
             ax.fill_between(res.time, st[j] - conf[j], st[j] + conf[j], color=color, alpha=0.15, lw=0)
             ax.plot(res.time, s1[j], color=color, lw=0.9, ls="--")
