@@ -63,7 +63,7 @@ def label(result) -> str:
 def timing(seed: int) -> tuple[float, object]:
     case = Case("timing", "htls", "effect", "sensor_delay", "nominal", seed)
     estimation, held_out, _ = case_data(case)
-    diagnose([estimation.select(["Omega", "y1"])], [held_out.select(["Omega", "y1"])],
+    diagnose([estimation.select(["Omega", "y1", "I_A"])], [held_out.select(["Omega", "y1", "I_A"])],
              candidates=("sensor_delay",))           # warm-up: numba cache load, first calls
     t0 = time.perf_counter()
     result = diagnose([estimation], [held_out], seed=seed)

@@ -5,7 +5,10 @@ Procedure (``diagnose``):
 1. Held-out data: the ``validation`` measurements when given; otherwise the last
    ``holdout_fraction`` (30 %) of every estimation record is held out — the first 70 % is
    fitted, and the held-out part is predicted by simulating the whole record from rest.
-2. Nominal ML fit (det R, Gauss-Newton) on the estimation data from the nominal values, and
+2. Nominal ML fit (det R, Gauss-Newton) on the estimation data from the nominal values
+   (parameters the channels cannot determine — no effect on them, or a singular direction
+   of the information matrix, e.g. k_n without a current channel — are held at their nominal
+   values here and in every refit), and
    localisation of its residual (:mod:`ema_uq.gap.localize`) on the estimation and on the
    held-out data; ``where`` and the signature matches come from the one with the larger
    systematic z (a gap that only extrapolation reveals shows on held-out data).
@@ -86,6 +89,7 @@ SIGNATURE_WEIGHT = 0.25
 START_MULTIPLES = (0.3, 1.0, 3.0, 10.0)
 PHASE_STARTS = 4
 MAX_GRID = 32
+SINGULAR_RELATIVE = 1e-10
 
 
 class GapError(ValueError):
@@ -435,8 +439,37 @@ def _relevant_base(problem: FitProblem, theta: np.ndarray, predicted: np.ndarray
     return sorted(relevance, key=lambda n: -relevance[n])[:count]
 
 
+def _unidentifiable_parameters(problem: FitProblem, theta: np.ndarray) -> list[str]:
+    """Free parameters the fitted channels cannot determine at ``theta``: those that move no
+    channel, then, while the information matrix (relative sensitivities, forward differences
+    in one batched call, R of the residual at ``theta``) has a direction with eigenvalue below
+    ``SINGULAR_RELATIVE`` of the largest, the parameter weighing most in it (rig-measured
+    gains last). E.g. k_n without a current channel, or the friction split without torque channels."""
+    names = problem.parameters.names
+    idx = problem.free_index
+    h = 1e-4 * np.where(np.abs(theta[idx]) > 0, np.abs(theta[idx]), 1.0)
+    thetas = np.repeat(theta[None], idx.size + 1, axis=0)
+    thetas[np.arange(idx.size), idx] += h
+    predicted = problem.predict(thetas)
+    sens = (predicted[:-1] - predicted[-1][None]) / (h / np.where(np.abs(theta[idx]) > 0, np.abs(theta[idx]), 1.0))[:, None, None]
+    residual = problem.observed - predicted[-1]
+    r_inv = np.linalg.inv(residual.T @ residual / residual.shape[0])
+    info = np.einsum("jkc,cd,lkd->jl", sens, r_inv, sens)
+    fixed = [names[i] for j, i in enumerate(idx) if not np.any(sens[j])]
+    while True:
+        keep = [j for j, i in enumerate(idx) if names[i] not in fixed]
+        if len(keep) < 2:
+            break
+        evals, evecs = np.linalg.eigh(info[np.ix_(keep, keep)])
+        if evals[0] > SINGULAR_RELATIVE * evals[-1]:
+            break
+        weight = np.abs(evecs[:, 0]) * [0.5 if problem.parameters.parameters[idx[j]].prior_std else 1.0 for j in keep]
+        fixed.append(names[idx[keep[int(np.argmax(weight))]]])
+    return fixed
+
+
 def _refit(name: str, effect, base, problem_args: dict, nominal_fit, settings: DiagnosisSettings,
-           start: np.ndarray | None = None, screening: bool = True):
+           start: np.ndarray | None = None, screening: bool = True, fixed: Sequence[str] = ()):
     """ML refit of the base model augmented by one effect.
 
     Screening (default): start from the best point of the start grid, free the effect
@@ -447,7 +480,7 @@ def _refit(name: str, effect, base, problem_args: dict, nominal_fit, settings: D
     """
     augmented = base.with_effects([name])
     names = _effect_parameter_names(augmented, base)
-    problem = FitProblem(model=augmented, **problem_args)
+    problem = FitProblem(model=augmented, parameters=augmented.parameters.fixing(fixed), **problem_args)
     n_extra = 0
     if start is None:
         grid = _start_grid(augmented, nominal_fit.as_dict(), effect, names)
@@ -462,7 +495,8 @@ def _refit(name: str, effect, base, problem_args: dict, nominal_fit, settings: D
         cap = settings.candidate_max_iterations
         count = settings.screen_base_parameters
         if count is not None and count < len(base.parameters):
-            keep = _relevant_base(problem, start, start_prediction, names, count)
+            keep = [n for n in _relevant_base(problem, start, start_prediction, names, count + len(fixed))
+                    if n not in fixed][:count]
             n_extra += problem.free_index.size
             fit_problem = FitProblem(model=augmented, parameters=augmented.parameters.freeing_only(keep + names),
                                      **problem_args)
@@ -530,7 +564,12 @@ def diagnose(
     # --- nominal fit and localisation -------------------------------------------------
     problem_args = {"measurements": estimation, "channels": channels}
     problem = FitProblem(**problem_args)
-    say(f"nominal ML fit of {concept} on {problem.n_samples} samples x {len(channels)} channels")
+    fixed = _unidentifiable_parameters(problem, base.parameters.nominal)
+    n_sims += problem.free_index.size + 1
+    if fixed:
+        problem = FitProblem(parameters=base.parameters.fixing(fixed), **problem_args)
+    say(f"nominal ML fit of {concept} on {problem.n_samples} samples x {len(channels)} channels"
+        + (f" ({', '.join(fixed)} held at nominal: these channels cannot determine them)" if fixed else ""))
     nominal = estimate(problem, method="gn", settings=Settings(tolerance=settings.tolerance,
                                                                max_iterations=settings.nominal_max_iterations))
     n_sims += nominal.n_simulations
@@ -578,7 +617,7 @@ def diagnose(
             # trial points that simulate to NaN have det R = NaN; the optimiser rejects them
             with np.errstate(invalid="ignore", over="ignore"):
                 augmented, names, fit, objective = _refit(name, effect, base, problem_args, nominal, settings,
-                                                          **kwargs)
+                                                          fixed=fixed, **kwargs)
         except (IdentificationError, SimulationError, np.linalg.LinAlgError) as exc:
             say(f"  {name}: refit failed ({exc})")
             return None, CandidateScore(name, float("-inf"), before["gap"], float("nan"), float("nan"),
@@ -650,6 +689,7 @@ def diagnose(
         "effect_of_after": winner,
     }
     nominal_json = {"log_det_R": nominal.log_det_r, "objective": nominal.objective, "converged": nominal.converged,
+                    "fixed": fixed,
                     "iterations": nominal.iterations, "n_samples": nominal.n_samples,
                     "estimate": nominal.as_dict(),
                     "std": {nm: float(s) for nm, s in zip(nominal.names, nominal.std)}}

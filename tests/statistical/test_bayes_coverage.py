@@ -20,8 +20,8 @@ Checks (``check``):
 
 CI runs a reduced problem (3 s of data, 3 channels, 4 free parameters, 6 data sets, ~30 s);
 ``pytest -m slow`` runs 20 data sets of the default HT/LS study problem (deploy-retract, every
-channel, all 16 parameters free, 2 ensembles x 16 walkers; about 1 minute per data set on 2
-idle cores).
+channel, all 16 parameters free, 2 ensembles x 8 walkers under the default stopping rule;
+7000-8000 simulations per data set).
 """
 from __future__ import annotations
 
@@ -48,7 +48,7 @@ class Campaign:
 
 FAST = Campaign(300, ("Omega", "y1", "I_A"), ("J", "B_TS1", "C_TS1", "p_PCE"),
                 bayes.SamplerSettings(n_walkers=8, n_ensembles=2, max_steps=1000, n_predictive=0))
-FULL = Campaign(3800, None, None, bayes.SamplerSettings(n_ensembles=2, max_steps=2000, n_predictive=0))
+FULL = Campaign(3800, None, None, bayes.SamplerSettings(n_walkers=8, n_ensembles=2, max_steps=3000, n_predictive=0))
 
 
 def run(campaign: Campaign, seeds) -> dict:

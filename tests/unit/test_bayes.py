@@ -274,6 +274,52 @@ def test_independence_move_leaves_the_target_exactly_invariant():
     assert np.max(np.abs(biased)) > 0.15, biased                 # π·q is shifted by ~0.27 sd
 
 
+def test_adapted_proposal_moves_the_centre_and_widens_only_where_the_pilot_spreads_further():
+    rng = np.random.default_rng(4)
+    sd = np.array([2.0, 0.1, 5.0, 1.0])
+    a = rng.standard_normal((4, 4))
+    c = a @ a.T + np.eye(4)
+    corr = c / np.sqrt(np.outer(np.diag(c), np.diag(c)))
+    cov = corr * np.outer(sd, sd)
+    lam, vec = np.linalg.eigh(corr)
+    d = sd[:, None] * vec                                        # principal directions, weakest first
+    # the truth: twice the bound's variance along the weakest direction, 0.5 along the next,
+    # and a mean 0.7 sd off the ML estimate along the weakest
+    ml = np.array([1.0, 2.0, 3.0, 4.0])
+    mean = ml + 0.7 * np.sqrt(lam[0]) * d[:, 0]
+    truth = d @ np.diag(lam * np.array([2.0, 0.5, 1.0, 1.0])) @ d.T
+    pilot = rng.multivariate_normal(mean, truth, size=40_000)
+    center, widened, ratios = bayes.adapted_proposal(ml, cov, pilot)
+    np.testing.assert_allclose(ratios, [2.0, 0.5, 1.0, 1.0], rtol=0.03)
+    np.testing.assert_allclose(center, pilot.mean(axis=0), rtol=1e-12)
+    np.testing.assert_allclose((center - ml) / sd, (mean - ml) / sd, atol=0.02)
+    want = d @ np.diag(lam * np.maximum(1.0, ratios)) @ d.T      # never narrower than the bound
+    np.testing.assert_allclose(widened, want, rtol=1e-10, atol=1e-14)
+    np.testing.assert_allclose(widened, d @ np.diag(lam * [2.0, 1.0, 1.0, 1.0]) @ d.T, rtol=0.05, atol=1e-3)
+    assert np.all(np.linalg.eigvalsh(widened - cov) > -1e-10)
+
+
+def test_a_run_resumed_across_the_pilot_gives_the_uninterrupted_chain(problem, fit, tmp_path):
+    settings = SamplerSettings(n_walkers=8, n_ensembles=2, max_steps=30, check_every=10, adapt_steps=10,
+                               n_predictive=0)
+    full = bayes.sample(problem, fit, settings=settings, seed=6, backend=tmp_path / "full.h5", predictive=False)
+    assert full.attrs["adapt_steps"] == 10 and full.burn_in > 10
+    ratios = np.array(full._json_attr("proposal_widening"))
+    assert ratios.shape == (3,) and np.all(ratios > 0)
+    cov = np.array(full._json_attr("proposal_covariance"))
+    assert np.all(np.linalg.eigvalsh(cov - np.asarray(fit.covariance)) > -1e-12 * np.abs(cov).max())
+    path = tmp_path / "resume.h5"
+    for cap in (7, 15):                                        # stopped inside, then after the pilot
+        bayes.sample(problem, fit, settings=SamplerSettings(**{**settings.__dict__, "max_steps": cap}), seed=6,
+                     backend=path, predictive=False)
+    resumed = bayes.sample(problem, fit, settings=settings, seed=6, backend=path, predictive=False)
+    for k in range(2):
+        np.testing.assert_array_equal(backend_chain(path, k), backend_chain(tmp_path / "full.h5", k))
+    np.testing.assert_array_equal(resumed.draws(), full.draws())
+    np.testing.assert_array_equal(np.array(resumed._json_attr("proposal_covariance")), cov)
+    assert np.array(resumed._json_attr("proposal_mean")).shape == (3,)
+
+
 def ar1_chains(rng, phi, n, walkers, n_free, n_ensembles):
     """AR(1) chains with unit marginal variance, τ = (1 + φ)/(1 - φ)."""
     out = []
@@ -348,6 +394,7 @@ def test_every_move_kind_evaluates_walkers_in_batches_and_is_recorded(problem, f
     ({"proposal_df": 2.0}, "degrees of freedom must be above 2"),
     ({"independence_weight": 0.0}, "weight must be in"),
     ({"proposal_scale": -1.0}, "proposal scale must be a positive number"),
+    ({"adapt_steps": 1}, "pilot of 1 steps: give 0"),
 ])
 def test_bad_move_settings_are_refused(problem, fit, changes, message):
     with pytest.raises(BayesError, match=message):

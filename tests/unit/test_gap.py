@@ -157,6 +157,17 @@ def test_fit_problem_takes_an_augmented_model_of_the_same_concept():
         FitProblem([data], model=get_model("lths").with_effects(["sensor_delay"]))
 
 
+def test_parameters_the_channels_cannot_determine_are_held():
+    from ema_uq.gap.attribute import _unidentifiable_parameters
+
+    data = synthesize("htls", deploy_retract().slice(0, 800), noise=0.02, seed=1)
+    nominal = get_model("htls").parameters.nominal
+    assert _unidentifiable_parameters(FitProblem([data]), nominal) == []
+    # without the current, k_n moves nothing; without torques only the loss totals are determined
+    held = _unidentifiable_parameters(FitProblem([data.select(["Omega", "y1", "y2"])]), nominal)
+    assert held[0] == "k_n" and len(held) >= 10 and not {"J", "p_ACE", "p_PCE"} & set(held)
+
+
 # --------------------------------------------------------------------------------------
 # end-to-end diagnoses (HT/LS, restricted candidates)
 # --------------------------------------------------------------------------------------
