@@ -105,7 +105,7 @@ class DiagnosisSettings:
     candidate_max_iterations: int = 8
     screen_base_parameters: int | None = 6
     final_candidates: int = 2
-    final_max_iterations: int = 6
+    final_max_iterations: int = 15
     tolerance: float = 1e-5
 
 
