@@ -76,7 +76,7 @@ from ..identify import FitProblem, IdentificationError, Settings, estimate
 from ..identify.problem import log_det
 from ..models import get_model
 from ..simulate import SimulationError, simulate_batch
-from .localize import (Localization, LocalizationError, ResidualRecord, complete_runs, localize,
+from .localize import (Localization, ResidualRecord, complete_runs, localize,
                        systematic_nrmse)
 
 BIC_MIN = 25.0

@@ -11,7 +11,7 @@ import json
 import numpy as np
 import pytest
 
-from ema_uq import Measurement, get_model, io, simulate_batch, synthesize
+from ema_uq import get_model, io, simulate_batch, synthesize
 from ema_uq.cli import main
 from ema_uq.experiments import add_noise, deploy_retract, validation
 from ema_uq.gap import GapError, GapResult, ResidualRecord, diagnose, localize, split_holdout, systematic_nrmse
