@@ -47,7 +47,7 @@ class Campaign:
 
 
 FAST = Campaign(300, ("Omega", "y1", "I_A"), ("J", "B_TS1", "C_TS1", "p_PCE"),
-                bayes.SamplerSettings(n_walkers=8, n_ensembles=2, max_steps=1000, n_predictive=0))
+                bayes.SamplerSettings(n_walkers=8, n_ensembles=2, max_steps=1000, adapt_steps=0, n_predictive=0))
 FULL = Campaign(3800, None, None, bayes.SamplerSettings(n_walkers=8, n_ensembles=2, max_steps=3000, n_predictive=0))
 
 

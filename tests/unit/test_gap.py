@@ -269,6 +269,33 @@ def test_self_check_cases_cover_the_acceptance_set():
     assert not {c.seed for c in cases} & set(range(100, 105))     # never the calibration seeds
 
 
+def test_self_check_scores_and_json_round_trip():
+    def outcome(kind, truth, verdict, effect, shrink, confidence="high"):
+        case = selfcheck.Case(f"{truth}", "htls", kind, truth, "nominal" if kind == "effect" else "", 1)
+        correct = (verdict == "effect" and effect == truth if kind == "effect" else
+                   verdict == "none" if kind == "none" else verdict == "unexplained" or confidence == "low")
+        return selfcheck.CaseOutcome(case, verdict, effect, confidence, shrink, 0.01, 0.01 * (1 - shrink), [],
+                                     correct, 1.0)
+
+    result = selfcheck.SelfCheckResult([
+        outcome("effect", "backlash", "effect", "backlash", 0.9),
+        outcome("effect", "stribeck", "effect", "stribeck", 0.7),
+        outcome("effect", "sensor_delay", "effect", "backlash", 0.95),       # wrong attribution
+        outcome("effect", "torque_ripple", "unexplained", None, 0.0),         # missed
+        outcome("none", "none", "none", None, 0.0),
+        outcome("none", "none", "effect", "stribeck", 0.1),                   # false alarm
+        outcome("out_of_catalogue", "position_friction", "effect", "stribeck", 0.3, "low"),
+    ], seed=5, quick=False, wall_time_s=7.0)
+    assert result.top1_accuracy == 0.5 and result.false_alarm_rate == 0.5
+    assert result.median_shrink == pytest.approx(0.8)          # of the two right attributions
+    assert result.out_of_catalogue_pass
+    assert result.confusion()["sensor_delay"] == {"backlash": 1} and result.confusion()["none"] == {"none": 1, "stribeck": 1}
+    assert result.accepted == {"top1_accuracy": False, "false_alarm_rate": False, "median_shrink": True,
+                               "out_of_catalogue": True}
+    back = selfcheck.SelfCheckResult.from_json(json.loads(json.dumps(result.to_json())))
+    assert back.to_json() == result.to_json()
+
+
 def test_self_check_data_are_seeded_and_position_friction_acts_on_screw_1():
     case = selfcheck.Case("t", "htls", "out_of_catalogue", "position_friction", "", 7)
     a_est, a_val, truth = selfcheck.case_data(case)
