@@ -59,7 +59,7 @@ NULL_LOADING = 1e-4
 WEAK_RTOL = 1e-6
 #: a profile whose rise stays below this fraction of the threshold over its whole span is flat
 FLAT_FRACTION = 0.1
-PROFILE_SETTINGS = Settings(tolerance=1e-6, max_iterations=30)
+PROFILE_SETTINGS = Settings(tolerance=1e-6, max_iterations=30, cramer_rao=False)  # only V is profiled
 GAMMA_CAP = 1e12
 
 VERDICTS = ("identifiable", "practically_non_identifiable", "structurally_non_identifiable")
@@ -257,7 +257,7 @@ def information(problem: FitProblem, theta: np.ndarray, *, rtol: float = RANK_RT
     h = FD_RELATIVE_STEP * scale
     steps = np.concatenate([np.diag(h), -np.diag(h)])
     thetas = problem.full_vectors(np.vstack([free, free + steps]), theta)
-    predicted = problem.predict(thetas)
+    predicted = problem.predict(thetas, share_steps=True)     # row 0 sets the steps of all
     residuals = problem.observed - predicted[0]
     r = covariance(residuals)
     whiten = np.linalg.cholesky(np.linalg.inv(r))               # R⁻¹ = L Lᵀ

@@ -24,11 +24,11 @@ class SimulationError(ValueError):
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _evaluate(model_id, x, u, th, c, dx, y):
+def _evaluate(model_id, x, u, th, c, dx, y, outputs=True):
     if model_id == 0:
-        htls.evaluate(x, u, th, c, dx, y)
+        htls.evaluate(x, u, th, c, dx, y, outputs)
     else:
-        lths.evaluate(x, u, th, c, dx, y)
+        lths.evaluate(x, u, th, c, dx, y, outputs)
 
 
 @njit(cache=True, error_model="numpy")
@@ -52,16 +52,16 @@ def _integrate_one(model_id, th, consts, inputs, x0, h, n_sub, out):
             break
         for sub in range(n_sub):
             if sub > 0:
-                _evaluate(model_id, x, u, th, consts, k1, scratch)
+                _evaluate(model_id, x, u, th, consts, k1, scratch, False)
             for i in range(n_x):
                 xt[i] = x[i] + 0.5 * h * k1[i]
-            _evaluate(model_id, xt, u, th, consts, k2, scratch)
+            _evaluate(model_id, xt, u, th, consts, k2, scratch, False)
             for i in range(n_x):
                 xt[i] = x[i] + 0.5 * h * k2[i]
-            _evaluate(model_id, xt, u, th, consts, k3, scratch)
+            _evaluate(model_id, xt, u, th, consts, k3, scratch, False)
             for i in range(n_x):
                 xt[i] = x[i] + h * k3[i]
-            _evaluate(model_id, xt, u, th, consts, k4, scratch)
+            _evaluate(model_id, xt, u, th, consts, k4, scratch, False)
             for i in range(n_x):
                 x[i] += h / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
 
@@ -156,28 +156,44 @@ DP_E = np.array([71 / 57600, 0.0, -71 / 16695, 71 / 1920, -17253 / 339200, 22 / 
 DP_SAFETY = 0.9
 DP_GROW_MAX = 5.0
 DP_SHRINK_MAX = 0.2
+#: error norms below this give a factor above DP_GROW_MAX
+DP_ERR_GROW_MAX = (DP_GROW_MAX / DP_SAFETY) ** -5.0
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _dp_stage_state(x, stages, s, h, xt):
-    """xt = x + h sum_j DP_A[s, j] k_j (the state where stage s is evaluated)."""
+def _dp_stage_state(x, k, s, h, xt):
+    """xt = x + h sum_j DP_A[s, j] k_j (the state where stage s is evaluated), written out per
+    stage with literal coefficients: the generic loop over a row of DP_A cost a third of the
+    right-hand side."""
     for i in range(x.shape[0]):
-        acc = DP_A[s, 0] * stages[0, i]
-        for j in range(1, s):
-            acc += DP_A[s, j] * stages[j, i]
+        if s == 1:
+            acc = (1 / 5) * k[0, i]
+        elif s == 2:
+            acc = (3 / 40) * k[0, i] + (9 / 40) * k[1, i]
+        elif s == 3:
+            acc = (44 / 45) * k[0, i] + (-56 / 15) * k[1, i] + (32 / 9) * k[2, i]
+        elif s == 4:
+            acc = ((19372 / 6561) * k[0, i] + (-25360 / 2187) * k[1, i] + (64448 / 6561) * k[2, i]
+                   + (-212 / 729) * k[3, i])
+        elif s == 5:
+            acc = ((9017 / 3168) * k[0, i] + (-355 / 33) * k[1, i] + (46732 / 5247) * k[2, i]
+                   + (49 / 176) * k[3, i] + (-5103 / 18656) * k[4, i])
+        else:
+            acc = ((35 / 384) * k[0, i] + (500 / 1113) * k[2, i] + (125 / 192) * k[3, i]
+                   + (-2187 / 6784) * k[4, i] + (11 / 84) * k[5, i])
         xt[i] = x[i] + h * acc
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _dp_error(x, xn, stages, h, rtol, scale):
-    """RMS over the controlled states (scale > 0) of local error / (rtol (scale + |x|))."""
+def _dp_error(x, xn, k, h, rtol, scale):
+    """RMS over the controlled states (scale > 0) of local error / (rtol (scale + |x|)); the
+    error weights DP_E written out (the generic loop cost a tenth of a step)."""
     total = 0.0
     n = 0
     for i in range(x.shape[0]):
         if scale[i] > 0.0:
-            e = DP_E[0] * stages[0, i]
-            for j in range(1, 7):
-                e += DP_E[j] * stages[j, i]
+            e = ((71 / 57600) * k[0, i] + (-71 / 16695) * k[2, i] + (71 / 1920) * k[3, i]
+                 + (-17253 / 339200) * k[4, i] + (22 / 525) * k[5, i] + (-1 / 40) * k[6, i])
             r = h * e / (rtol * (scale[i] + max(abs(x[i]), abs(xn[i]))))
             total += r * r
             n += 1
@@ -187,8 +203,9 @@ def _dp_error(x, xn, stages, h, rtol, scale):
 @njit(cache=True, inline="always", error_model="numpy")
 def _dp_factor(err):
     """Step-size factor from the error norm of a step (err <= 1: accepted)."""
-    fac = DP_SAFETY * err ** -0.2 if err > 0.0 else DP_GROW_MAX
-    return min(DP_GROW_MAX, max(DP_SHRINK_MAX, fac))
+    if err <= DP_ERR_GROW_MAX:  # the factor is capped anyway: spare the power function
+        return DP_GROW_MAX
+    return min(DP_GROW_MAX, max(DP_SHRINK_MAX, DP_SAFETY * err ** -0.2))
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -199,26 +216,38 @@ def _dp_accept(x, stages, xt):
 
 
 @njit(cache=True, error_model="numpy")
-def _dopri_one(model_id, th, consts, inputs, x0, dt, rtol, scale, out):
+def _dopri_one(model_id, th, consts, inputs, x0, dt, rtol, scale, out, steps, counts):
     """Adaptive DP5(4) run of one parameter vector; writes outputs (n_samples, n_outputs) into ``out``.
 
     ``scale`` (n_states,): absolute error scale of each state (its typical magnitude; the
     absolute tolerance is rtol * scale), 0 to leave a state out of the error norm. Returns the
-    numbers of accepted and rejected steps.
+    numbers of accepted and rejected steps. A non-empty ``steps`` records the accepted step
+    lengths in order and ``counts`` (n_samples - 1,) their number per sample interval, for
+    :func:`_dopri_replay_one`; the accepted count is -1 when ``steps`` is too short.
     """
     n_x = x0.shape[0]
     x = x0.copy()
     xt = np.empty(n_x)
     stages = np.empty((7, n_x))
+    k = np.empty(n_x)
     scratch = np.empty(out.shape[1])
     n_samples = inputs.shape[0]
     h_open = dt  # the step that opened the previous interval: the transient repeats every sample
     n_accepted = 0
     n_rejected = 0
-    for k in range(n_samples):
-        u = inputs[k]
-        _evaluate(model_id, x, u, th, consts, stages[0], out[k])
-        if k == n_samples - 1:
+    recording = steps.shape[0] > 0
+    u = np.empty(inputs.shape[1])
+    for j in range(n_samples):
+        # rows copied in and out rather than viewed: a view costs two atomic reference-count
+        # updates, more than the copy of a few numbers
+        for i in range(u.shape[0]):
+            u[i] = inputs[j, i]
+        _evaluate(model_id, x, u, th, consts, k, scratch)
+        for i in range(n_x):
+            stages[0, i] = k[i]
+        for i in range(scratch.shape[0]):
+            out[j, i] = scratch[i]
+        if j == n_samples - 1:
             break
         t = 0.0
         h = h_open
@@ -230,9 +259,18 @@ def _dopri_one(model_id, th, consts, inputs, x0, dt, rtol, scale, out):
                 h = rest
             for s in range(1, 7):
                 _dp_stage_state(x, stages, s, h, xt)
-                _evaluate(model_id, xt, u, th, consts, stages[s], scratch)
+                # into a plain vector, then copied: a row view per evaluation costs two
+                # reference-count updates, more than the copy
+                _evaluate(model_id, xt, u, th, consts, k, scratch, False)
+                for i in range(n_x):
+                    stages[s, i] = k[i]
             err = _dp_error(x, xt, stages, h, rtol, scale)
             if err <= 1.0:
+                if recording:
+                    if n_accepted == steps.shape[0]:
+                        return -1, n_rejected
+                    steps[n_accepted] = h
+                    counts[j] += 1
                 _dp_accept(x, stages, xt)
                 n_accepted += 1
                 fac = _dp_factor(err)
@@ -253,11 +291,60 @@ def _dopri_one(model_id, th, consts, inputs, x0, dt, rtol, scale, out):
 def _dopri_batch(model_id, thetas, consts, inputs, x0, dt, rtol, scales, out):
     """Kernel entry: thetas (n_sets, n_params), scales (n_sets, n_states) -> out (n_sets, n_samples, n_outputs)."""
     for s in prange(thetas.shape[0]):
-        _dopri_one(model_id, thetas[s], consts, inputs, x0, dt, rtol, scales[s], out[s])
+        _dopri_one(model_id, thetas[s], consts, inputs, x0, dt, rtol, scales[s], out[s],
+                   np.empty(0), np.empty(0, dtype=np.int64))
 
 
 @njit(cache=True, error_model="numpy")
-def _dopri_one_effects(model_id, th, consts, inputs, x0, dt, rtol, scale, out):
+def _dopri_replay_one(model_id, th, consts, inputs, x0, steps, counts, out):
+    """The accepted steps recorded by ``_dopri_one``, given (no error control): the same
+    arithmetic, so the set that chose the steps is reproduced bit for bit and any other set is
+    a smooth function of its parameters along that one step sequence."""
+    n_x = x0.shape[0]
+    x = x0.copy()
+    xt = np.empty(n_x)
+    stages = np.empty((7, n_x))
+    k = np.empty(n_x)
+    scratch = np.empty(out.shape[1])
+    n_samples = inputs.shape[0]
+    pos = 0
+    u = np.empty(inputs.shape[1])
+    for j in range(n_samples):
+        for i in range(u.shape[0]):
+            u[i] = inputs[j, i]
+        _evaluate(model_id, x, u, th, consts, k, scratch)
+        for i in range(n_x):
+            stages[0, i] = k[i]
+        for i in range(scratch.shape[0]):
+            out[j, i] = scratch[i]
+        if j == n_samples - 1:
+            break
+        for _ in range(counts[j]):
+            h = steps[pos]
+            pos += 1
+            for s in range(1, 7):
+                _dp_stage_state(x, stages, s, h, xt)
+                _evaluate(model_id, xt, u, th, consts, k, scratch, False)
+                for i in range(n_x):
+                    stages[s, i] = k[i]
+            _dp_accept(x, stages, xt)
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _dopri_batch_shared(model_id, thetas, consts, inputs, x0, dt, rtol, scales, out, steps, counts):
+    """``_dopri_batch`` where set 0 chooses the steps and every other set replays them: finite-
+    difference sensitivities free of the step-selection noise of independent adaptive runs.
+    Returns False (nothing else done) when ``steps`` is too short for set 0's sequence."""
+    n_accepted, _ = _dopri_one(model_id, thetas[0], consts, inputs, x0, dt, rtol, scales[0], out[0], steps, counts)
+    if n_accepted < 0:
+        return False
+    for s in prange(1, thetas.shape[0]):
+        _dopri_replay_one(model_id, thetas[s], consts, inputs, x0, steps, counts, out[s])
+    return True
+
+
+@njit(cache=True, error_model="numpy")
+def _dopri_one_effects(model_id, th, consts, inputs, x0, dt, rtol, scale, out, steps, counts):
     """``_dopri_one`` for an augmented model, the same arithmetic; states with ``scale < 0``
     are frozen (an effect at its ``off`` value whose states feed nothing: the stiff shaft mode
     of ``shaft_compliance`` at period 0 would otherwise be integrated, unresolved, for nothing)."""
@@ -270,11 +357,12 @@ def _dopri_one_effects(model_id, th, consts, inputs, x0, dt, rtol, scale, out):
     h_open = dt
     n_accepted = 0
     n_rejected = 0
-    for k in range(n_samples):
-        u = inputs[k]
-        _evaluate_effects(model_id, x, u, th, consts, stages[0], out[k])
+    recording = steps.shape[0] > 0
+    for j in range(n_samples):
+        u = inputs[j]
+        _evaluate_effects(model_id, x, u, th, consts, stages[0], out[j])
         _freeze(stages[0], scale)
-        if k == n_samples - 1:
+        if j == n_samples - 1:
             break
         t = 0.0
         h = h_open
@@ -290,6 +378,11 @@ def _dopri_one_effects(model_id, th, consts, inputs, x0, dt, rtol, scale, out):
                 _freeze(stages[s], scale)
             err = _dp_error(x, xt, stages, h, rtol, scale)
             if err <= 1.0:
+                if recording:
+                    if n_accepted == steps.shape[0]:
+                        return -1, n_rejected
+                    steps[n_accepted] = h
+                    counts[j] += 1
                 _dp_accept(x, stages, xt)
                 n_accepted += 1
                 fac = _dp_factor(err)
@@ -317,7 +410,46 @@ def _freeze(dx, scale):
 def _dopri_batch_effects(model_id, thetas, consts, inputs, x0, dt, rtol, scales, out):
     """``_dopri_batch`` for an augmented model."""
     for s in prange(thetas.shape[0]):
-        _dopri_one_effects(model_id, thetas[s], consts, inputs, x0, dt, rtol, scales[s], out[s])
+        _dopri_one_effects(model_id, thetas[s], consts, inputs, x0, dt, rtol, scales[s], out[s],
+                           np.empty(0), np.empty(0, dtype=np.int64))
+
+
+@njit(cache=True, error_model="numpy")
+def _dopri_replay_one_effects(model_id, th, consts, inputs, x0, scale, steps, counts, out):
+    """``_dopri_replay_one`` for an augmented model (frozen states as in ``_dopri_one_effects``)."""
+    n_x = x0.shape[0]
+    x = x0.copy()
+    xt = np.empty(n_x)
+    stages = np.empty((7, n_x))
+    scratch = np.empty(out.shape[1])
+    n_samples = inputs.shape[0]
+    pos = 0
+    for j in range(n_samples):
+        u = inputs[j]
+        _evaluate_effects(model_id, x, u, th, consts, stages[0], out[j])
+        _freeze(stages[0], scale)
+        if j == n_samples - 1:
+            break
+        for _ in range(counts[j]):
+            h = steps[pos]
+            pos += 1
+            for s in range(1, 7):
+                _dp_stage_state(x, stages, s, h, xt)
+                _evaluate_effects(model_id, xt, u, th, consts, stages[s], scratch)
+                _freeze(stages[s], scale)
+            _dp_accept(x, stages, xt)
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _dopri_batch_shared_effects(model_id, thetas, consts, inputs, x0, dt, rtol, scales, out, steps, counts):
+    """``_dopri_batch_shared`` for an augmented model."""
+    n_accepted, _ = _dopri_one_effects(model_id, thetas[0], consts, inputs, x0, dt, rtol, scales[0], out[0],
+                                       steps, counts)
+    if n_accepted < 0:
+        return False
+    for s in prange(1, thetas.shape[0]):
+        _dopri_replay_one_effects(model_id, thetas[s], consts, inputs, x0, scales[s], steps, counts, out[s])
+    return True
 
 
 INTEGRATORS = ("dopri5", "rk4")
@@ -367,6 +499,7 @@ def simulate_batch(
     step: float | None = None,
     integrator: str | None = None,
     rtol: float | None = None,
+    share_steps: bool = False,
 ) -> np.ndarray:
     """Simulate a batch of parameter vectors on one experiment.
 
@@ -382,6 +515,10 @@ def simulate_batch(
     integrator : "dopri5" (adaptive, relative tolerance ``rtol``) or "rk4" (fixed ``step``);
         default: ``model.integrator`` (RK4 when ``step`` is given).
     rtol : relative tolerance of "dopri5" (default: ``model.rtol``).
+    share_steps : "dopri5" only: the first set chooses the step sequence and every other set
+        follows it (for finite differences around the first set: independent step choices
+        would add a noise of order rtol to each difference). The first set's outputs are the
+        same as without sharing.
 
     Returns
     -------
@@ -428,6 +565,14 @@ def simulate_batch(
     if method == "rk4":
         kernel = _integrate_batch_effects if effects else _integrate_batch
         kernel(model.model_id, thetas, model.kernel_constants(consts), inputs, x0, h, n_sub, out)
+    elif share_steps and thetas.shape[0] > 1:
+        kernel = _dopri_batch_shared_effects if effects else _dopri_batch_shared
+        counts = np.zeros(time.size - 1, dtype=np.int64)
+        capacity = 8 * time.size
+        while not kernel(model.model_id, thetas, model.kernel_constants(consts), inputs, x0, dt, tol,
+                         error_scales(model, thetas), out, np.empty(capacity), counts):
+            capacity *= 4
+            counts[:] = 0
     else:
         kernel = _dopri_batch_effects if effects else _dopri_batch
         kernel(model.model_id, thetas, model.kernel_constants(consts), inputs, x0, dt, tol,

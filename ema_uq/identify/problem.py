@@ -147,15 +147,17 @@ class FitProblem:
         full[:, self.free_index] = free_values
         return full
 
-    def predict(self, thetas: np.ndarray) -> np.ndarray:
+    def predict(self, thetas: np.ndarray, *, share_steps: bool = False) -> np.ndarray:
         """Predicted channels (n_sets, N, n_channels) for full parameter vectors (n_sets, n_params).
 
-        Every experiment is one batched simulator call over all sets.
+        Every experiment is one batched simulator call over all sets. ``share_steps``: every
+        set follows the adaptive step sequence of the first (finite differences around it).
         """
         thetas = np.atleast_2d(thetas)
         parts = []
         for b in self.blocks:
-            out = simulate_batch(self.model, thetas, b.time, b.inputs, constants=self.constants)
+            out = simulate_batch(self.model, thetas, b.time, b.inputs, constants=self.constants,
+                                 share_steps=share_steps)
             parts.append(out[:, b.rows][:, :, self.channel_index])
         return np.concatenate(parts, axis=1)
 

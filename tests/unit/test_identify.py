@@ -498,3 +498,14 @@ def test_cli_start_of_another_concept(cli_files):
     r = run_cli("identify", d / "dr.nc", "--concept", "htls", "--start", d / "lths_fit.json", "--out", out)
     assert_one_line_error(r, "holds a fit of concept lths", "--concept htls")
     assert not out.exists()
+
+
+def test_a_fit_without_cramer_rao_bounds_reaches_the_same_estimate_for_fewer_runs(problem, start, gn_fit):
+    bare = estimate(problem, start=start, settings=Settings(cramer_rao=False))
+    np.testing.assert_array_equal(bare.estimate, gn_fit.estimate)
+    assert bare.objective == gn_fit.objective
+    free = problem.free_index
+    assert np.all(np.isnan(bare.std[free])) and np.all(np.isnan(bare.covariance))
+    # the central-difference information at the estimate: 2 p + 1 runs saved
+    assert gn_fit.n_simulations - bare.n_simulations == 2 * free.size + 1
+    assert any("not computed" in w for w in bare.warnings)
