@@ -167,6 +167,7 @@ rule sample:
         max_steps=lambda w: study(w)["sample"]["max_steps"],
         check_every=lambda w: study(w)["sample"]["check_every"],
         moves=lambda w: study(w)["sample"]["moves"],
+        defensive=lambda w: study(w)["sample"]["defensive"],
     log:
         "results/{study}/logs/sample.log",
     benchmark:
@@ -178,7 +179,7 @@ rule sample:
     shell:
         "ema-uq sample {input.estimation} --concept {params.concept} --init {input.fit} --seed {params.seed} "
         "{params.walkers} --ensembles {params.ensembles} --max-steps {params.max_steps} "
-        "--check-every {params.check_every} --moves {params.moves} --quiet "
+        "--check-every {params.check_every} --moves {params.moves} --defensive {params.defensive} --quiet "
         "--backend results/{wildcards.study}/posterior.h5 --out {output} > {log} 2>&1"
 
 

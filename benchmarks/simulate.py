@@ -6,8 +6,8 @@ For each concept, full deploy-retract runs (38 s, 3800 samples) per second of wa
                sample interval at a time (tests/reference_scipy.py, ``peer_simulate``);
   (b) single : ``simulate_batch`` called once per parameter set, in a loop;
   (c) batch  : one ``simulate_batch`` call on 256 sets, on all numba threads;
-(b) and (c) for each integrator: adaptive Dormand-Prince 5(4) at the concept's rtol (the
-default) and fixed-step RK4 at the concept's step.
+(b) and (c) for each integrator: adaptive Dormand-Prince 5(4) at the concept's rtol (used by
+the forward-only stages) and fixed-step RK4 at the concept's step (the default, used by fits).
 
 Also: accuracy of the peer and of each integrator against the DOP853 rtol 1e-10 reference
 (so the peer is compared at equal accuracy), and numba compile time measured in fresh

@@ -318,6 +318,8 @@ class SamplerSettings:
     proposal_df: float = 20.0
     proposal_scale: float = 1.25
     adapt_steps: int = 100
+    defensive_weight: float = 0.0
+    defensive_width: float = 2.0
 
     def walkers_for(self, n_free: int) -> int:
         if self.n_walkers is not None:
@@ -331,8 +333,10 @@ class SamplerSettings:
         """One line naming the moves and their weights (stored with the result)."""
         de = "DE 80 % + DE snooker 20 %"
         if self.moves == "independence":
+            wide = (f"; {self.defensive_weight:.0%} of draws from a {self.defensive_width:g}x wider component"
+                    if self.defensive_weight > 0 else "")
             return (f"independence MH {self.independence_weight:.0%} (Student-t df {self.proposal_df:g}, "
-                    f"covariance {self.proposal_scale:g} x Cramér-Rao covariance, centred at the ML estimate) "
+                    f"covariance {self.proposal_scale:g} x Cramér-Rao covariance, centred at the ML estimate{wide}) "
                     f"+ ({de}) {1 - self.independence_weight:.0%}")
         return de if self.moves == "de" else "stretch (a = 2)"
 
@@ -361,6 +365,10 @@ def _check_settings(settings: SamplerSettings, n_free: int) -> int:
                          f"got {settings.proposal_df}")
     if not (math.isfinite(settings.proposal_scale) and settings.proposal_scale > 0):
         raise BayesError(f"proposal scale must be a positive number, got {settings.proposal_scale}")
+    if not 0.0 <= settings.defensive_weight < 1.0:
+        raise BayesError(f"defensive mixture weight must be in [0, 1), got {settings.defensive_weight}")
+    if not (math.isfinite(settings.defensive_width) and settings.defensive_width >= 1.0):
+        raise BayesError(f"defensive component width must be a number >= 1, got {settings.defensive_width}")
     if settings.adapt_steps < 0 or settings.adapt_steps == 1:
         raise BayesError(f"pilot of {settings.adapt_steps} steps: give 0 (no adaptation) or at least 2 steps")
     return n_walkers
@@ -411,7 +419,24 @@ class StudentTProposal:
         return self.center + z * np.sqrt(self.df / w)[:, None]
 
 
-def _independence_move(proposal: StudentTProposal):
+class DefensiveMixture:
+    """(1 - α) q + α q_wide: a proposal with a wider component of weight α, so that the weight
+    π/q stays bounded where the posterior reaches further than q (a walker that lands there
+    otherwise keeps rejecting for many steps). Same interface as :class:`StudentTProposal`."""
+
+    def __init__(self, core: StudentTProposal, wide: StudentTProposal, weight: float):
+        self.core, self.wide, self.weight = core, wide, float(weight)
+        self.center = core.center
+
+    def logpdf(self, x: np.ndarray) -> np.ndarray:
+        return np.logaddexp(math.log1p(-self.weight) + self.core.logpdf(x), math.log(self.weight) + self.wide.logpdf(x))
+
+    def draw(self, random, n: int) -> np.ndarray:
+        core, wide = self.core.draw(random, n), self.wide.draw(random, n)
+        return np.where((random.uniform(size=n) < self.weight)[:, None], wide, core)
+
+
+def _independence_move(proposal: StudentTProposal | DefensiveMixture):
     """emcee move: every walker proposes an independent draw x' ~ q and accepts it with
     probability min(1, π(x') q(x) / (π(x) q(x'))). The factor log q(x) - log q(x') goes to
     emcee as the proposal's log ratio, so the move leaves π exactly invariant however far q
@@ -443,7 +468,11 @@ def _moves(settings: SamplerSettings, center: np.ndarray | None = None, cov: np.
     df = settings.proposal_df
     chol = _cholesky(settings.proposal_scale * (df - 2.0) / df * np.asarray(cov, dtype=float), len(center),
                      "build the independence proposal")
-    move = _independence_move(StudentTProposal(center, chol, df))
+    proposal = StudentTProposal(center, chol, df)
+    if settings.defensive_weight > 0.0:
+        proposal = DefensiveMixture(proposal, StudentTProposal(center, settings.defensive_width * chol, df),
+                                    settings.defensive_weight)
+    move = _independence_move(proposal)
     w = settings.independence_weight
     if w >= 1.0:
         return move

@@ -311,6 +311,9 @@ def _add_sample(subparsers) -> None:
     p.add_argument("--moves", choices=("independence", "de", "stretch"), default="independence",
                    help="emcee moves: independence (Student-t proposal around the ML estimate mixed with "
                         "differential evolution), de (differential evolution) or stretch (default independence)")
+    p.add_argument("--defensive", type=float, default=0.0, metavar="W",
+                   help="independence moves: fraction W of proposals drawn from a 2x wider component, which "
+                        "bounds pi/q where the posterior reaches further than the proposal (default 0)")
     p.add_argument("--backend", default=None, metavar="FILE.h5",
                    help="HDF5 chain store; an existing one of the same run is resumed (default: --out with .h5)")
     p.add_argument("--noise-sigma", choices=("estimated", "known"), default="estimated",
@@ -351,7 +354,7 @@ def _run_sample(args: argparse.Namespace) -> str:
     problem = FitProblem(measurements, parameters=parameters, channels=fit.channels or None)
     settings = SamplerSettings(n_walkers=args.walkers, n_ensembles=args.chains, max_steps=args.max_steps,
                                check_every=args.check_every, spread=args.spread, moves=args.moves,
-                               n_predictive=args.predictive)
+                               n_predictive=args.predictive, defensive_weight=args.defensive)
 
     def progress(line: str) -> None:
         print(f"{PROG} sample: {line}", file=sys.stderr, flush=True)

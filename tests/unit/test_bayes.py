@@ -240,6 +240,25 @@ def test_student_t_proposal_matches_scipy():
     assert stats.kstest(np.sum(z * z, axis=0) / 4, stats.f(4, 10).cdf).pvalue > 1e-3
 
 
+def test_defensive_mixture_density_and_draws():
+    from scipy import stats
+
+    rng = np.random.default_rng(3)
+    a = rng.standard_normal((3, 3))
+    scale = a @ a.T + 3 * np.eye(3)
+    center = rng.standard_normal(3)
+    chol = np.linalg.cholesky(scale)
+    q = bayes.DefensiveMixture(bayes.StudentTProposal(center, chol, 20.0),
+                               bayes.StudentTProposal(center, 2.0 * chol, 20.0), 0.2)
+    x = center + 4 * rng.standard_normal((5, 3))
+    want = np.log(0.8 * stats.multivariate_t(center, scale, df=20.0).pdf(x)
+                  + 0.2 * stats.multivariate_t(center, 4.0 * scale, df=20.0).pdf(x))
+    np.testing.assert_allclose(q.logpdf(x), want, rtol=1e-12)
+    draws = q.draw(np.random.RandomState(1), 200_000)
+    # covariance of the mixture: (0.8 + 0.2 * 4) * ν/(ν-2) * S
+    np.testing.assert_allclose(np.cov(draws.T), 1.6 * scale * 20 / 18, rtol=0, atol=0.04 * np.max(np.diag(scale)))
+
+
 def test_independence_move_leaves_the_target_exactly_invariant():
     """A proposal off-centre by 0.8 sd and twice too wide still samples N(m, C) exactly: the
     proposal density ratio enters the acceptance. The same move without that ratio samples
@@ -266,10 +285,12 @@ def test_independence_move_leaves_the_target_exactly_invariant():
         sampler.run_mcmc(start, 650)
         return sampler.get_chain(discard=50, flat=True)
 
-    good = draws(exact)
-    z_mean = (good.mean(axis=0) - m) / sd
-    assert np.all(np.abs(z_mean) < 0.05), z_mean               # MC error of the mean ~0.01 sd
-    np.testing.assert_allclose(np.cov(good.T) / np.outer(sd, sd), corr, atol=0.05)
+    defensive = bayes._independence_move(bayes.DefensiveMixture(
+        proposal, bayes.StudentTProposal(proposal.center, 2.0 * proposal.chol, 10.0), 0.2))
+    for good in (draws(exact), draws(defensive)):
+        z_mean = (good.mean(axis=0) - m) / sd
+        assert np.all(np.abs(z_mean) < 0.05), z_mean               # MC error of the mean ~0.01 sd
+        np.testing.assert_allclose(np.cov(good.T) / np.outer(sd, sd), corr, atol=0.05)
     biased = (draws(naive).mean(axis=0) - m) / sd
     assert np.max(np.abs(biased)) > 0.15, biased                 # π·q is shifted by ~0.27 sd
 
