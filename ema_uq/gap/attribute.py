@@ -425,10 +425,9 @@ def _relevant_base(problem: FitProblem, theta: np.ndarray, predicted: np.ndarray
     idx = problem.free_index
     scale = np.where(np.abs(theta[idx]) > 0, np.abs(theta[idx]), 1.0)
     h = 1e-5 * scale
-    thetas = np.repeat(theta[None], idx.size + 1, axis=0)     # row 0: the base, which sets the steps
-    thetas[1 + np.arange(idx.size), idx] += h
-    runs = problem.predict(thetas, share_steps=True)
-    sens = (runs[1:] - runs[0][None]) / (h / scale)[:, None, None]     # (p, N, m)
+    thetas = np.repeat(theta[None], idx.size, axis=0)
+    thetas[np.arange(idx.size), idx] += h
+    sens = (problem.predict(thetas) - predicted[None]) / (h / scale)[:, None, None]     # (p, N, m)
     residual = problem.observed - predicted
     r_inv = np.linalg.inv(residual.T @ residual / residual.shape[0])
     info = np.einsum("jkc,cd,lkd->jl", sens, r_inv, sens)

@@ -59,9 +59,9 @@ def _evaluate(problem: FitProblem, thetas: np.ndarray, counter: _Counter) -> lis
 def _information(problem: FitProblem, state: _State, scale: np.ndarray, counter: _Counter, central: bool = True):
     """Scaled information matrix F and gradient G of V at ``state`` (R held fixed).
 
-    Output sensitivities by finite differences, all perturbed vectors in ONE batched call led
-    by the current state: forward (p + 1 runs, enough to steer the iterations) or central
-    (2p + 1 runs, for the Cramér-Rao bound at the estimate).
+    Output sensitivities by finite differences, all perturbed vectors in ONE batched call
+    (led by the current state when the integrator is adaptive): forward (p runs, enough to
+    steer the iterations) or central (2p runs, for the Cramér-Rao bound at the estimate).
     """
     p = scale.size
     h = FD_RELATIVE_STEP * scale
@@ -69,12 +69,15 @@ def _information(problem: FitProblem, state: _State, scale: np.ndarray, counter:
     steps[:p][np.diag_indices(p)] = h
     if central:
         steps[p:][np.diag_indices(p)] = -h
-    # the current state leads the batch: an adaptive integrator takes its step sequence for
-    # every perturbed run, so the differences carry no step-selection noise
-    thetas = problem.full_vectors(np.vstack([state.free, state.free[None, :] + steps]), state.theta)
-    predicted = problem.predict(thetas, share_steps=True)
+    # an adaptive integrator: the current state leads the batch and every perturbed run takes
+    # its step sequence, so the differences carry no step-selection noise (fixed steps need no
+    # leader: the state's own prediction is the base)
+    adaptive = problem.model.integrator != "rk4"
+    free = np.vstack([state.free, state.free[None, :] + steps]) if adaptive else state.free[None, :] + steps
+    thetas = problem.full_vectors(free, state.theta)
+    predicted = problem.predict(thetas, share_steps=adaptive)
     counter.n += thetas.shape[0]
-    base, predicted = predicted[0], predicted[1:]
+    base, predicted = (predicted[0], predicted[1:]) if adaptive else (state.predicted, predicted)
     # S[k, c, j] = d y_kc / d s_j in scaled coordinates
     if central:
         sens = (predicted[:p] - predicted[p:]).transpose(1, 2, 0) / (2.0 * h) * scale
