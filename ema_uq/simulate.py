@@ -140,7 +140,9 @@ def _integrate_batch_effects(model_id, thetas, consts, inputs, x0, h, n_sub, out
 # the trajectory is smooth. An embedded pair spends its steps where they are needed.
 # Each held sample interval is integrated on its own (the input jumps at its start); the output
 # evaluation at t_k is the first stage of the interval, the last stage of an accepted step is
-# the first of the next (FSAL). Row 6 of DP_A is the 5th-order solution.
+# the first of the next (FSAL). Row 6 of DP_A is the 5th-order solution. The kernels spell
+# DP_A and DP_E out as literals (_dp_stage_state, _dp_error); these arrays are the published
+# tableau the unit tests check those literals against.
 DP_A = np.array([
     [0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
     [1 / 5, 0.0, 0.0, 0.0, 0.0, 0.0],

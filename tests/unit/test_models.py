@@ -431,3 +431,20 @@ def test_shared_steps_grow_their_record_when_a_run_needs_more_steps(experiment, 
     np.testing.assert_array_equal(simulate_batch(model, thetas, time, inputs, integrator="dopri5", share_steps=True),
                                   expected)
     assert len(calls) == 2 and calls[1] > calls[0]
+
+
+def test_written_out_dormand_prince_coefficients_match_the_tableau():
+    """The kernel spells the Butcher tableau and error weights out as literals (for speed);
+    they must equal DP_A / DP_E, the tableau as published."""
+    import importlib
+
+    sim = importlib.import_module("ema_uq.simulate")
+    rng = np.random.default_rng(3)
+    x, k, h = rng.standard_normal(5), rng.standard_normal((7, 5)), 0.37
+    xt = np.empty(5)
+    for s in range(1, 7):
+        sim._dp_stage_state(x, k, s, h, xt)
+        np.testing.assert_allclose(xt, x + h * sim.DP_A[s, :s] @ k[:s], rtol=1e-14, atol=1e-14)
+    xn, scale, rtol = x + 0.1, np.array([1.0, 0.0, 2.0, 0.5, 3.0]), 1e-6
+    want = h * sim.DP_E @ k / (rtol * (scale + np.maximum(np.abs(x), np.abs(xn))))
+    assert sim._dp_error(x, xn, k, h, rtol, scale) == pytest.approx(np.sqrt(np.mean(want[scale > 0] ** 2)), rel=1e-12)
