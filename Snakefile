@@ -168,6 +168,7 @@ rule sample:
         check_every=lambda w: study(w)["sample"]["check_every"],
         moves=lambda w: study(w)["sample"]["moves"],
         defensive=lambda w: study(w)["sample"]["defensive"],
+        integrator=lambda w: option("--integrator", [study(w)["sample"]["integrator"]] if study(w)["sample"]["integrator"] else []),
     log:
         "results/{study}/logs/sample.log",
     benchmark:
@@ -179,8 +180,8 @@ rule sample:
     shell:
         "ema-uq sample {input.estimation} --concept {params.concept} --init {input.fit} --seed {params.seed} "
         "{params.walkers} --ensembles {params.ensembles} --max-steps {params.max_steps} "
-        "--check-every {params.check_every} --moves {params.moves} --defensive {params.defensive} --quiet "
-        "--backend results/{wildcards.study}/posterior.h5 --out {output} > {log} 2>&1"
+        "--check-every {params.check_every} --moves {params.moves} --defensive {params.defensive} {params.integrator} --quiet "
+        "--replace-stale-backend --backend results/{wildcards.study}/posterior.h5 --out {output} > {log} 2>&1"
 
 
 rule sensitivity_chunk:

@@ -48,6 +48,7 @@ ensembles; ``draw`` = kept step after burn-in and thinning.
 """
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
@@ -279,7 +280,11 @@ class SamplerSettings:
     n_ensembles: independent ensembles; max_steps: step cap per ensemble; check_every:
     steps between stopping-rule checks; spread: c in N(Θ_ML, c Σ_CRB) for the start;
     n_predictive: posterior draws simulated for the predictive group; vectorize: one
-    batched call per log-probability evaluation (False = one call per walker, for benchmarks).
+    batched call per log-probability evaluation (False = one call per walker, for benchmarks);
+    integrator: of the likelihood's simulations, "rk4" or "dopri5" (None: the model's). The
+    adaptive one is 1.6-2.7 times faster; its step selection jitters log L by ~1e-4 (3.5e-4 on
+    LT/HS), which stalls a Gauss-Newton line search but is far below what changes an MCMC
+    acceptance decision.
 
     moves, one of :data:`MOVE_KINDS`:
 
@@ -320,6 +325,7 @@ class SamplerSettings:
     adapt_steps: int = 100
     defensive_weight: float = 0.0
     defensive_width: float = 2.0
+    integrator: str | None = None
 
     def walkers_for(self, n_free: int) -> int:
         if self.n_walkers is not None:
@@ -369,6 +375,8 @@ def _check_settings(settings: SamplerSettings, n_free: int) -> int:
         raise BayesError(f"defensive mixture weight must be in [0, 1), got {settings.defensive_weight}")
     if not (math.isfinite(settings.defensive_width) and settings.defensive_width >= 1.0):
         raise BayesError(f"defensive component width must be a number >= 1, got {settings.defensive_width}")
+    if settings.integrator not in (None, "rk4", "dopri5"):
+        raise BayesError(f"unknown integrator {settings.integrator!r}; choose rk4 or dopri5")
     if settings.adapt_steps < 0 or settings.adapt_steps == 1:
         raise BayesError(f"pilot of {settings.adapt_steps} steps: give 0 (no adaptation) or at least 2 steps")
     return n_walkers
@@ -555,12 +563,16 @@ def _signature(problem: FitProblem, priors, base, center, noise_sigma, settings,
         "walkers": n_walkers, "ensembles": settings.n_ensembles, "spread": settings.spread,
         "moves": settings.move_description(), "seed": seed, "check_every": settings.check_every,
         "adapt_steps": settings.adapt_steps if settings.moves == "independence" else 0,
+        "integrator": problem.model.integrator,
     }, sort_keys=True).encode())
     return h.hexdigest()[:32]
 
 
-def _open_backends(path: str | os.PathLike, signature: str, n_ensembles: int):
-    """One emcee HDFBackend group per ensemble in ``path``; refuses a file of another run."""
+def _open_backends(path: str | os.PathLike, signature: str, n_ensembles: int, replace_stale: bool = False,
+                   progress: Callable[[str], None] | None = None):
+    """One emcee HDFBackend group per ensemble in ``path``; refuses a file of another run, or
+    with ``replace_stale`` moves it aside to ``<stem>.stale.h5`` (replacing an older one) and
+    starts afresh: a workflow reruns the stage after its data or settings changed."""
     import emcee
     import h5py
 
@@ -571,10 +583,16 @@ def _open_backends(path: str | os.PathLike, signature: str, n_ensembles: int):
                 stored = f.attrs.get("ema_uq_signature")
         except OSError:
             raise BayesError(f"backend {path} is not an HDF5 file; delete it or choose another --backend") from None
-        if stored is None or (stored.decode() if isinstance(stored, bytes) else str(stored)) != signature:
+        stale = stored is None or (stored.decode() if isinstance(stored, bytes) else str(stored)) != signature
+        if stale and replace_stale:
+            aside = path.with_name(path.stem + ".stale.h5")
+            path.replace(aside)
+            if progress is not None:
+                progress(f"backend {path} held a run with other data or settings: moved it to {aside}, starting afresh")
+        elif stale:
             raise BayesError(f"backend {path} holds a run with different data or settings; delete it to start "
-                             "afresh or choose another --backend")
-    else:
+                             "afresh, choose another --backend or give --replace-stale-backend")
+    if not path.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
         with h5py.File(path, "w") as f:
             f.attrs["ema_uq_signature"] = signature
@@ -843,6 +861,7 @@ def sample(
     backend: str | os.PathLike | None = None,
     progress: Callable[[str], None] | None = None,
     predictive: bool = True,
+    replace_stale_backend: bool = False,
 ) -> PosteriorResult:
     """Sample the posterior of ``problem``'s free parameters starting from ``fit``.
 
@@ -859,6 +878,8 @@ def sample(
     backend : HDF5 file; an existing file of the same run is resumed. None: in memory.
     progress : called with one line of text at every check.
     predictive : simulate the posterior predictive subsample.
+    replace_stale_backend : a ``backend`` file of another run (other data or settings) is
+        moved aside to ``<stem>.stale.h5`` instead of refused.
     """
     import emcee
 
@@ -873,6 +894,11 @@ def sample(
         sigma = known_noise_sigma(problem, fit) if noise_sigma == "known" else None
     else:
         sigma = None if noise_sigma is None else np.asarray(noise_sigma, dtype=float)
+    if settings.integrator not in (None, problem.model.integrator):
+        if problem.model.batch_simulator is not None:
+            raise BayesError(f"concept {problem.model.name} has its own simulator: its integrator cannot be chosen; "
+                             "drop --integrator")
+        problem = dataclasses.replace(problem, model=dataclasses.replace(problem.model, integrator=settings.integrator))
     base = np.asarray(fit.estimate, dtype=float)
     center = base[problem.free_index]
     posterior = LogPosterior(problem, prior_list, base, sigma)
@@ -883,7 +909,7 @@ def sample(
     if backend is None:
         backends = [emcee.backends.Backend() for _ in range(settings.n_ensembles)]
     else:
-        backends = _open_backends(backend, signature, settings.n_ensembles)
+        backends = _open_backends(backend, signature, settings.n_ensembles, replace_stale_backend, progress)
     log_prob = posterior if settings.vectorize else _OneAtATime(posterior)
 
     def make_samplers(mean: np.ndarray, cov: np.ndarray) -> list:
@@ -965,6 +991,7 @@ def sample(
             "proposal_widening": json.dumps(None if ratios is None else ratios.tolist()),
             "proposal_mean": json.dumps(proposal_mean.tolist() if settings.moves == "independence" else None),
             "proposal_covariance": json.dumps(proposal_cov.tolist() if settings.moves == "independence" else None),
+            "integrator": problem.model.integrator,
             "likelihood": "concentrated det R" if sigma is None else "Gaussian, known sigma",
             "noise_sigma": json.dumps(None if sigma is None else sigma.tolist()),
             "priors": json.dumps({n_: p.describe() for n_, p in zip(problem.parameters.free_names, prior_list)}),

@@ -123,6 +123,50 @@ def test_a_backend_of_another_run_is_refused(problem, fit, tmp_path):
         bayes.sample(problem, fit, settings=FAST, seed=2, backend=tmp_path / "junk.h5")
 
 
+def test_a_stale_backend_is_moved_aside_on_request_and_the_run_starts_afresh(problem, fit, tmp_path):
+    import h5py
+
+    path = tmp_path / "run.h5"
+    short = SamplerSettings(**{**FAST.__dict__, "max_steps": 5})
+    bayes.sample(problem, fit, settings=short, seed=1, backend=path, predictive=False)
+    old = backend_chain(path)
+    lines = []
+    res = bayes.sample(problem, fit, settings=FAST, seed=2, backend=path, predictive=False,
+                       replace_stale_backend=True, progress=lines.append)
+    aside = tmp_path / "run.stale.h5"
+    assert "moved it to" in lines[0] and str(aside) in lines[0]
+    np.testing.assert_array_equal(backend_chain(aside), old)          # the old chains are kept, not lost
+    with h5py.File(path, "r") as f:
+        assert f.attrs["ema_uq_signature"] == res.attrs["signature"]
+    fresh = bayes.sample(problem, fit, settings=FAST, seed=2, predictive=False)
+    np.testing.assert_array_equal(res.draws(), fresh.draws())          # nothing carried over
+    # the same run again is resumed, not moved aside
+    again = bayes.sample(problem, fit, settings=FAST, seed=2, backend=path, predictive=False,
+                         replace_stale_backend=True)
+    np.testing.assert_array_equal(again.draws(), res.draws())
+    np.testing.assert_array_equal(backend_chain(aside), old)
+
+
+def test_the_likelihood_integrator_can_be_chosen(problem, fit):
+    rk4 = bayes.LogPosterior(problem, bayes.build_priors(problem), fit.estimate)
+    res = bayes.sample(problem, fit, settings=SamplerSettings(**{**FAST.__dict__, "integrator": "dopri5"}), seed=11,
+                       predictive=False)
+    assert res.attrs["integrator"] == "dopri5" and problem.model.integrator == "rk4"
+    # both integrators are converged far below the noise: the log posterior at the stored
+    # draws agrees to well under the 0.1 nats that would matter to an acceptance decision
+    draws = res.draws().reshape(-1, len(res.names))[::37]
+    lp = res.idata.sample_stats["lp"].values.reshape(-1)[::37]
+    np.testing.assert_allclose(rk4(draws), lp, atol=1e-2)
+    assert not np.array_equal(rk4(draws), lp)                          # it did use the other integrator
+    with pytest.raises(BayesError, match="unknown integrator 'euler'; choose rk4 or dopri5"):
+        bayes.sample(problem, fit, settings=SamplerSettings(**{**FAST.__dict__, "integrator": "euler"}))
+    import dataclasses
+
+    own = dataclasses.replace(problem, model=dataclasses.replace(problem.model, batch_simulator=lambda *a: None))
+    with pytest.raises(BayesError, match="has its own simulator: its integrator cannot be chosen"):
+        bayes.sample(own, fit, settings=SamplerSettings(**{**FAST.__dict__, "integrator": "dopri5"}))
+
+
 # --------------------------------------------------------------------------------------
 # the InferenceData
 # --------------------------------------------------------------------------------------
