@@ -196,3 +196,23 @@ def test_bad_study_is_rejected_at_parse_time_naming_the_key(tmp_path, change, na
     proc = snakemake(workdir, "-n", *SMOKE, check=False)
     assert proc.returncode != 0
     assert named in proc.stdout + proc.stderr
+
+
+def test_changed_sample_settings_rerun_the_stage_with_the_old_chains_moved_aside(smoke_run, tmp_path):
+    workdir = tmp_path / "wf"
+    shutil.copytree(smoke_run, workdir, symlinks=True)
+    chains = workdir / "results/smoke/posterior.h5"
+    before = chains.read_bytes()
+    study_file = workdir / "studies/smoke.yaml"
+    study = yaml.safe_load(study_file.read_text())
+    study["sample"]["defensive"] = 0.2
+    study_file.write_text(yaml.safe_dump(study))
+    jobs = planned_jobs(snakemake(workdir, "-n", *SMOKE))
+    jobs.pop("all", None)
+    assert jobs == {"sample": 1, "report": 1}
+    snakemake(workdir, *SMOKE)                    # a backend of another run no longer stops the stage
+    assert (workdir / "results/smoke/posterior.stale.h5").read_bytes() == before
+    import arviz as az
+
+    posterior = az.from_netcdf(workdir / "results/smoke/posterior.nc").posterior
+    assert "20 % of draws from a 2x wider component" in posterior.attrs["move_mix"]
