@@ -170,7 +170,9 @@ def _posterior_section(study: dict, results: Path) -> str:
              f"({state}: "
              f"{html.escape(str(a['stop_reason']))}); burn-in {post.burn_in}, thin {post.thin}, "
              f"max τ {float(np.max(post.tau)):.1f} steps, {post.n_simulations} simulations in "
-             f"{post.wall_time_s:.0f} s, seed {post.seed}, moves {html.escape(str(a.get('moves', '')))}.")
+             f"{post.wall_time_s:.0f} s, seed {post.seed}; moves: {html.escape(str(a.get('move_mix', a.get('moves', ''))))}; "
+             f"likelihood: {html.escape(str(a.get('likelihood', '')))}, simulated with "
+             f"{html.escape(str(a.get('integrator', 'the model integrator')))}.")
     parts = [f"<p>emcee started from the ML estimate. {facts}</p>",
              _table(["parameter", "truth", "ML ± CRB σ", "posterior mean ± sd", "90 % HDI", "sd / CRB σ",
                      "R-hat", "bulk ESS", "tail ESS", "MCSE mean"], rows)]

@@ -215,4 +215,6 @@ def test_changed_sample_settings_rerun_the_stage_with_the_old_chains_moved_aside
     import arviz as az
 
     posterior = az.from_netcdf(workdir / "results/smoke/posterior.nc").posterior
-    assert "20 % of draws from a 2x wider component" in posterior.attrs["move_mix"]
+    assert "20% of draws from a 2x wider component" in posterior.attrs["move_mix"]
+    report = next(workdir.glob("reports/smoke*.html")).read_text()
+    assert "20% of draws from a 2x wider component" in report and "simulated with rk4" in report
