@@ -571,15 +571,18 @@ def _signature(problem: FitProblem, priors, base, center, noise_sigma, settings,
     return h.hexdigest()[:32]
 
 
-def _open_backends(path: str | os.PathLike, signature: str, n_ensembles: int, replace_stale: bool = False,
-                   progress: Callable[[str], None] | None = None):
-    """One emcee HDFBackend group per ensemble in ``path``; refuses a file of another run, or
-    with ``replace_stale`` moves it aside to ``<stem>.stale.h5`` (replacing an older one) and
-    starts afresh: a workflow reruns the stage after its data or settings changed."""
+def _open_backends(path: str | os.PathLike, signature: str, n_ensembles: int, replace_stale: bool = False
+                   ) -> tuple[list, Path | None]:
+    """One emcee HDFBackend group per ensemble in ``path``, and where a stale file went.
+
+    A file of another run is refused, or with ``replace_stale`` moved aside to
+    ``<stem>.stale.h5`` (replacing an older one) and the run starts afresh: a workflow reruns
+    the stage after its data or settings changed."""
     import emcee
     import h5py
 
     path = Path(path)
+    aside = None
     if path.exists():
         try:
             with h5py.File(path, "r") as f:
@@ -590,8 +593,6 @@ def _open_backends(path: str | os.PathLike, signature: str, n_ensembles: int, re
         if stale and replace_stale:
             aside = path.with_name(path.stem + ".stale.h5")
             path.replace(aside)
-            if progress is not None:
-                progress(f"backend {path} held a run with other data or settings: moved it to {aside}, starting afresh")
         elif stale:
             raise BayesError(f"backend {path} holds a run with different data or settings; delete it to start "
                              "afresh, choose another --backend or give --replace-stale-backend")
@@ -599,7 +600,7 @@ def _open_backends(path: str | os.PathLike, signature: str, n_ensembles: int, re
         path.parent.mkdir(parents=True, exist_ok=True)
         with h5py.File(path, "w") as f:
             f.attrs["ema_uq_signature"] = signature
-    return [emcee.backends.HDFBackend(str(path), name=f"ensemble_{k}") for k in range(n_ensembles)]
+    return [emcee.backends.HDFBackend(str(path), name=f"ensemble_{k}") for k in range(n_ensembles)], aside
 
 
 # --------------------------------------------------------------------------------------
@@ -909,10 +910,14 @@ def sample(
     rng, states = _ensemble_seeds(seed, settings.n_ensembles)
     start = place_walkers(rng, posterior, center, fit.covariance, settings.spread, n_walkers, settings.n_ensembles)
     signature = _signature(problem, prior_list, base, center, sigma, settings, n_walkers, seed)
+    stale_moved_to = None
     if backend is None:
         backends = [emcee.backends.Backend() for _ in range(settings.n_ensembles)]
     else:
-        backends = _open_backends(backend, signature, settings.n_ensembles, replace_stale_backend, progress)
+        backends, stale_moved_to = _open_backends(backend, signature, settings.n_ensembles, replace_stale_backend)
+        if stale_moved_to is not None and progress is not None:
+            progress(f"backend {backend} held a run with other data or settings: moved it to {stale_moved_to}, "
+                     "starting afresh")
     log_prob = posterior if settings.vectorize else _OneAtATime(posterior)
 
     def make_samplers(mean: np.ndarray, cov: np.ndarray) -> list:
@@ -1006,6 +1011,7 @@ def sample(
             "crb_std": json.dumps(np.sqrt(np.diag(fit.covariance)).tolist()),
             "channels": json.dumps(list(problem.channels)),
             "signature": signature,
+            "stale_backend_moved_to": "" if stale_moved_to is None else str(stale_moved_to),
             "n_simulations": int(posterior.n_simulations),
             "wall_time_s": float(time.perf_counter() - t0),
         })

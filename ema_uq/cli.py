@@ -375,7 +375,9 @@ def _run_sample(args: argparse.Namespace) -> str:
     return (f"wrote {out}: {model.name} posterior of {len(result.names)} parameters, "
             f"{'converged' if result.converged else 'NOT converged (step cap)'} after {result.n_steps} steps, "
             f"max R-hat {table['r_hat'].max():.3f}, min bulk ESS {table['ess_bulk'].min():.0f}, "
-            f"{result.wall_time_s:.1f} s (chains in {backend})")
+            f"{result.wall_time_s:.1f} s (chains in {backend}"
+            + (f"; the chains of another run found there were moved to {moved}" if (moved := result.attrs.get(
+                "stale_backend_moved_to")) else "") + ")")
 
 
 def _load_study_for(path: str, concept: str):

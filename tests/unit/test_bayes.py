@@ -136,6 +136,7 @@ def test_a_stale_backend_is_moved_aside_on_request_and_the_run_starts_afresh(pro
     aside = tmp_path / "run.stale.h5"
     assert "moved it to" in lines[0] and str(aside) in lines[0]
     np.testing.assert_array_equal(backend_chain(aside), old)          # the old chains are kept, not lost
+    assert res.attrs["stale_backend_moved_to"] == str(aside)
     with h5py.File(path, "r") as f:
         assert f.attrs["ema_uq_signature"] == res.attrs["signature"]
     fresh = bayes.sample(problem, fit, settings=FAST, seed=2, predictive=False)

@@ -212,6 +212,8 @@ def test_changed_sample_settings_rerun_the_stage_with_the_old_chains_moved_aside
     assert jobs == {"sample": 1, "report": 1}
     snakemake(workdir, *SMOKE)                    # a backend of another run no longer stops the stage
     assert (workdir / "results/smoke/posterior.stale.h5").read_bytes() == before
+    assert "the chains of another run found there were moved to" in \
+        (workdir / "results/smoke/logs/sample.log").read_text()
     import arviz as az
 
     posterior = az.from_netcdf(workdir / "results/smoke/posterior.nc").posterior
