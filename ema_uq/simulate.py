@@ -244,6 +244,14 @@ def _dp_stages(model_id, x, u, th, consts, stages, h, xt, k, scratch):
             stages[s, i] = k[i]
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def _dp_workspace(x0, n_outputs):
+    """Working arrays of one adaptive run: the state (a copy of ``x0``), the state where a
+    stage is evaluated, the 7 stage derivatives and an output scratch row."""
+    n_x = x0.shape[0]
+    return x0.copy(), np.empty(n_x), np.empty((7, n_x)), np.empty(n_outputs)
+
+
 @njit(cache=True, error_model="numpy")
 def _dopri_one(model_id, th, consts, inputs, x0, dt, rtol, scale, out, steps, counts):
     """Adaptive DP5(4) run of one parameter vector; writes outputs (n_samples, n_outputs) into ``out``.
@@ -254,12 +262,8 @@ def _dopri_one(model_id, th, consts, inputs, x0, dt, rtol, scale, out, steps, co
     lengths in order and ``counts`` (n_samples - 1,) their number per sample interval, for
     :func:`_dopri_replay_one`; the accepted count is -1 when ``steps`` is too short.
     """
-    n_x = x0.shape[0]
-    x = x0.copy()
-    xt = np.empty(n_x)
-    stages = np.empty((7, n_x))
-    k = np.empty(n_x)
-    scratch = np.empty(out.shape[1])
+    x, xt, stages, scratch = _dp_workspace(x0, out.shape[1])
+    k = np.empty(x0.shape[0])
     n_samples = inputs.shape[0]
     h_open = dt  # the step that opened the previous interval: the transient repeats every sample
     n_accepted = 0
@@ -315,12 +319,8 @@ def _dopri_replay_one(model_id, th, consts, inputs, x0, steps, counts, out):
     """The accepted steps recorded by ``_dopri_one``, given (no error control): the same
     arithmetic, so the set that chose the steps is reproduced bit for bit and any other set is
     a smooth function of its parameters along that one step sequence."""
-    n_x = x0.shape[0]
-    x = x0.copy()
-    xt = np.empty(n_x)
-    stages = np.empty((7, n_x))
-    k = np.empty(n_x)
-    scratch = np.empty(out.shape[1])
+    x, xt, stages, scratch = _dp_workspace(x0, out.shape[1])
+    k = np.empty(x0.shape[0])
     n_samples = inputs.shape[0]
     pos = 0
     u = np.empty(inputs.shape[1])
@@ -353,11 +353,7 @@ def _dopri_one_effects(model_id, th, consts, inputs, x0, dt, rtol, scale, out, s
     """``_dopri_one`` for an augmented model, the same arithmetic; states with ``scale < 0``
     are frozen (an effect at its ``off`` value whose states feed nothing: the stiff shaft mode
     of ``shaft_compliance`` at period 0 would otherwise be integrated, unresolved, for nothing)."""
-    n_x = x0.shape[0]
-    x = x0.copy()
-    xt = np.empty(n_x)
-    stages = np.empty((7, n_x))
-    scratch = np.empty(out.shape[1])
+    x, xt, stages, scratch = _dp_workspace(x0, out.shape[1])
     n_samples = inputs.shape[0]
     h_open = dt
     n_accepted = 0
@@ -422,11 +418,7 @@ def _dopri_batch_effects(model_id, thetas, consts, inputs, x0, dt, rtol, scales,
 @njit(cache=True, error_model="numpy")
 def _dopri_replay_one_effects(model_id, th, consts, inputs, x0, scale, steps, counts, out):
     """``_dopri_replay_one`` for an augmented model (frozen states as in ``_dopri_one_effects``)."""
-    n_x = x0.shape[0]
-    x = x0.copy()
-    xt = np.empty(n_x)
-    stages = np.empty((7, n_x))
-    scratch = np.empty(out.shape[1])
+    x, xt, stages, scratch = _dp_workspace(x0, out.shape[1])
     n_samples = inputs.shape[0]
     pos = 0
     for j in range(n_samples):
