@@ -360,9 +360,7 @@ def _dopri_one_effects(model_id, th, consts, inputs, x0, dt, rtol, scale, out, s
     n_rejected = 0
     recording = steps.shape[0] > 0
     for j in range(n_samples):
-        u = inputs[j]
-        _evaluate_effects(model_id, x, u, th, consts, stages[0], out[j])
-        _freeze(stages[0], scale)
+        u = _dp_sample_effects(model_id, x, inputs, j, th, consts, stages, scale, out)
         if j == n_samples - 1:
             break
         t = 0.0
@@ -407,6 +405,16 @@ def _freeze(dx, scale):
             dx[i] = 0.0
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def _dp_sample_effects(model_id, x, inputs, j, th, consts, stages, scale, out):
+    """``_dp_sample`` for an augmented model: outputs of sample j and the first stage, frozen
+    states held; returns the held input row."""
+    u = inputs[j]
+    _evaluate_effects(model_id, x, u, th, consts, stages[0], out[j])
+    _freeze(stages[0], scale)
+    return u
+
+
 @njit(cache=True, parallel=True, error_model="numpy")
 def _dopri_batch_effects(model_id, thetas, consts, inputs, x0, dt, rtol, scales, out):
     """``_dopri_batch`` for an augmented model."""
@@ -422,9 +430,7 @@ def _dopri_replay_one_effects(model_id, th, consts, inputs, x0, scale, steps, co
     n_samples = inputs.shape[0]
     pos = 0
     for j in range(n_samples):
-        u = inputs[j]
-        _evaluate_effects(model_id, x, u, th, consts, stages[0], out[j])
-        _freeze(stages[0], scale)
+        u = _dp_sample_effects(model_id, x, inputs, j, th, consts, stages, scale, out)
         if j == n_samples - 1:
             break
         for _ in range(counts[j]):
