@@ -6,8 +6,11 @@ For each concept, full deploy-retract runs (38 s, 3800 samples) per second of wa
                sample interval at a time (tests/reference_scipy.py, ``peer_simulate``);
   (b) single : ``simulate_batch`` called once per parameter set, in a loop;
   (c) batch  : one ``simulate_batch`` call on 256 sets, on all numba threads;
-(b) and (c) for each integrator: adaptive Dormand-Prince 5(4) at the concept's rtol (used by
-the forward-only stages) and fixed-step RK4 at the concept's step (the default, used by fits).
+(b) and (c) for each integrator: "hybrid" (exact zero-order-hold steps over the intervals where
+the concept is linear, Dormand-Prince elsewhere; used by the forward-only stages), adaptive
+Dormand-Prince 5(4) at the concept's rtol, and fixed-step RK4 at the concept's step (the
+default, used by fits). The adaptive rows also give the work of one nominal run: exact
+intervals, accepted and rejected steps, right-hand-side evaluations.
 
 Also: accuracy of the peer and of each integrator against the DOP853 rtol 1e-10 reference
 (so the peer is compared at equal accuracy), and numba compile time measured in fresh
@@ -32,6 +35,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(HERE, os.pardir, "tests"))
 
 from ema_uq import deploy_retract, get_model, simulate_batch  # noqa: E402
+from ema_uq.simulate import step_statistics  # noqa: E402
 from reference_scipy import PEER_SETTINGS, peer_simulate, reference_simulate  # noqa: E402
 
 TARGET_SINGLE_OVER_PEER = {"htls": 250.0}
@@ -96,13 +100,16 @@ def bench_concept(concept: str, n_peer: int, n_single: int, repeats: int, accura
         err = lambda out: float((np.abs(out - ref).max(axis=0) / scale).max())  # noqa: E731
         err_peer = err(peer_simulate(concept, as_dict(theta), consts, time_, inputs))
     rows = []
-    for method, setting in (("dopri5", f"rtol {model.rtol:g}"), ("rk4", f"step {model.integration_step * 1e3:g} ms")):
+    for method, setting in (("hybrid", f"rtol {model.rtol:g}"), ("dopri5", f"rtol {model.rtol:g}"),
+                            ("rk4", f"step {model.integration_step * 1e3:g} ms")):
         run = lambda th, m=method: simulate_batch(model, th, time_, inputs, integrator=m)  # noqa: E731
         run(thetas[:2])  # load the compiled kernel before timing
         single = best_rate(lambda: [run(thetas[i]) for i in range(n_single)], n_single, repeats)
         batch = best_rate(lambda: run(thetas), N_BATCH, repeats)
         row = {"concept": concept, "method": method, "setting": setting, "peer": peer, "single": single,
                "batch": batch}
+        if method != "rk4":
+            row["work"] = step_statistics(model, model.parameters.nominal, time_, inputs, integrator=method).summary()
         if accuracy:
             row["err_peer"] = err_peer
             row["err_numba"] = err(simulate_batch(model, theta, time_, inputs, constants=const_vec, integrator=method))
@@ -163,6 +170,10 @@ def main(argv=None) -> None:
         of_target = f", {r['single'] / r['peer'] / t_sp:.2f} of the single/peer target" if t_sp else ""
         print(f"  {r['concept']} {r['method']:<6} ({r['setting']}): peer {1e3 / r['peer']:.0f}, "
               f"single {1e3 / r['single']:.2f}, batch {1e3 / r['batch']:.2f}{of_target}")
+    print("work of one nominal run:")
+    for r in rows:
+        if "work" in r:
+            print(f"  {r['concept']} {r['work']}")
     if not args.quick:
         print("accuracy vs DOP853 rtol 1e-10 reference (max over channels of max|err|/max|ref|):")
         for r in rows:

@@ -282,10 +282,11 @@ class SamplerSettings:
     steps between stopping-rule checks; spread: c in N(Θ_ML, c Σ_CRB) for the start;
     n_predictive: posterior draws simulated for the predictive group; vectorize: one
     batched call per log-probability evaluation (False = one call per walker, for benchmarks);
-    integrator: of the likelihood's simulations, "rk4" or "dopri5" (None: the model's). The
-    adaptive one is 1.6-2.7 times faster; its step selection jitters log L by ~1e-4 (3.5e-4 on
-    LT/HS), which stalls a Gauss-Newton line search but is far below what changes an MCMC
-    acceptance decision.
+    integrator: of the likelihood's simulations, "rk4", "dopri5" or "hybrid" (None: the
+    model's; see :func:`ema_uq.simulate.simulate_batch`). The adaptive ones are faster (dopri5
+    1.6-2.7 times, hybrid 5-10 times on the deploy-retract run); their step selection jitters
+    log L by ~1e-4 (3.5e-4 on LT/HS), which stalls a Gauss-Newton line search but is far below
+    what changes an MCMC acceptance decision.
 
     moves, one of :data:`MOVE_KINDS`:
 
@@ -378,8 +379,8 @@ def _check_settings(settings: SamplerSettings, n_free: int) -> int:
         raise BayesError(f"defensive mixture weight must be in [0, 1), got {settings.defensive_weight}")
     if not (math.isfinite(settings.defensive_width) and settings.defensive_width >= 1.0):
         raise BayesError(f"defensive component width must be a number >= 1, got {settings.defensive_width}")
-    if settings.integrator not in (None, "rk4", "dopri5"):
-        raise BayesError(f"unknown integrator {settings.integrator!r}; choose rk4 or dopri5")
+    if settings.integrator not in (None, "rk4", "dopri5", "hybrid"):
+        raise BayesError(f"unknown integrator {settings.integrator!r}; choose rk4, dopri5 or hybrid")
     if settings.adapt_steps < 0 or settings.adapt_steps == 1:
         raise BayesError(f"pilot of {settings.adapt_steps} steps: give 0 (no adaptation) or at least 2 steps")
     return n_walkers

@@ -319,9 +319,10 @@ def _add_sample(subparsers) -> None:
     p.add_argument("--replace-stale-backend", action="store_true",
                    help="a backend holding another run (other data or settings) is moved aside to FILE.stale.h5 "
                         "and the run starts afresh (default: refuse it)")
-    p.add_argument("--integrator", choices=("rk4", "dopri5"), default=None,
+    p.add_argument("--integrator", choices=("rk4", "dopri5", "hybrid"), default=None,
                    help="integrator of the likelihood's simulations (default: the concept's, rk4): dopri5 is "
-                        "1.6-2.7x faster; its step selection jitters log L by ~1e-4, harmless to MCMC, which "
+                        "1.6-2.7x faster, hybrid (exact steps where the model is linear, dopri5 elsewhere) "
+                        "5-10x; their step selection jitters log L by ~1e-4, harmless to MCMC, which "
                         "needs no smooth objective (the ML fit does)")
     p.add_argument("--noise-sigma", choices=("estimated", "known"), default="estimated",
                    help="estimated: concentrated det R likelihood; known: Gaussian with each channel's "

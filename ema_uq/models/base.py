@@ -35,7 +35,8 @@ class Model:
     constants : design constants and model settings (all fixed), in kernel order.
     integration_step : fixed RK4 step [s] known to be converged below the noise level.
     integrator : "dopri5" (adaptive Dormand-Prince 5(4), tolerance ``rtol``, absolute
-        tolerance ``rtol * state_scales``) or "rk4" (fixed ``integration_step``).
+        tolerance ``rtol * state_scales``), "hybrid" (exact steps over the sample intervals
+        where the concept is linear, "dopri5" elsewhere) or "rk4" (fixed ``integration_step``).
     state_scales : typical magnitude of each state (state units), the adaptive error scale.
     derive : constants computed once per simulation from ``constants`` (appended in kernel order).
     """

@@ -86,3 +86,24 @@ def station_torques(omega_u, sign_u, f_er, b_ts, c_ts, b_u, c_u, r_sin_cos_gamma
 def screw_constants(r: float, gamma: float, beta1: float, beta2: float) -> list[float]:
     """[r sinγ cosγ, r tanγ, 1/cosβ1, 1/cosβ2]: the trigonometric constants of both stations."""
     return [r * math.sin(gamma) * math.cos(gamma), r * math.tan(gamma), 1.0 / math.cos(beta1), 1.0 / math.cos(beta2)]
+
+
+#: |v / omega_eps| from which tanh(v / omega_eps) is exactly ±1 in double precision
+#: (19.0615...): beyond it a smoothed sign is a constant and the friction terms are affine.
+SIGN_SATURATED_ARGUMENT = 19.07
+#: the linear regime of the "hybrid" integrator keeps every smoothed-sign argument above
+#: this multiple of SIGN_SATURATED_ARGUMENT, a margin for the checks between sample points
+LINEAR_REGIME_MARGIN = 2.0
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def stays_above(value, rate, delta, bound):
+    """``value - delta |rate| > bound``: the tangent at a checked point keeps ``value`` above
+    ``bound`` for ``delta`` seconds (the linear regime's test between checked points)."""
+    return value - delta * abs(rate) > bound
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def stays_below(value, rate, delta, bound):
+    """``value + delta |rate| < bound`` (see :func:`stays_above`)."""
+    return value + delta * abs(rate) < bound

@@ -15,8 +15,9 @@ from numba import njit
 from ..params import Parameter, ParameterSet
 from .base import Model
 from .effects import CATALOGUE, augment_ema
-from .components import (BRAKE_AND_SETTINGS, DEG, brake_torque, const, loss_parameters,
-                         rig_gain, screw_constants, smooth_sign, station_torques)
+from .components import (BRAKE_AND_SETTINGS, DEG, LINEAR_REGIME_MARGIN, SIGN_SATURATED_ARGUMENT,
+                         brake_torque, const, loss_parameters, rig_gain, screw_constants, smooth_sign,
+                         station_torques, stays_above, stays_below)
 
 # --- estimated parameters Θ (eq. 44), kernel positions ----------------------------------
 (P_J, P_B_TS1, P_C_TS1, P_B_U1, P_C_U1, P_B_TP1, P_C_TP1,
@@ -140,3 +141,43 @@ def evaluate(x, u, th, c, dx, y, outputs=True):
         y[13] = m_uer2
         y[14] = m_tper1
         y[15] = m_tper2
+
+
+# --- the linear regime (integrator "hybrid", simulate.py) ---------------------------------
+# With the brake released, every smoothed sign saturated (|speed / omega_eps| beyond the
+# point where tanh is exactly ±1) and the torque limit inactive, eqs. 1-15 and 32-38 are
+# affine in the state: dx/dt = A x + b(u, sign), with A below. Over a held sample interval
+# that stays in this regime, x(t) = x_k + Γ(t) f(x_k) exactly, Γ(t) = ∫_0^t e^{As} ds.
+
+@njit(cache=True, inline="always", error_model="numpy")
+def linear_state_matrix(th, c, a):
+    """Write into ``a`` (4, 4) the state matrix ∂f/∂x, constant in the linear regime."""
+    a[:, :] = 0.0
+    i1 = c[C_I_TP1]
+    i2 = c[C_I_TP2]
+    # d M_TPERk / d Omega through the screw, the U-joint (1/cos beta) and the bevel gear (1/i)
+    loss1 = ((th[P_B_TS1] * c[D_INV_COS_B1] + th[P_B_U1]) / i1 + th[P_B_TP1]) / i1
+    loss2 = ((th[P_B_TS2] * c[D_INV_COS_B2] + th[P_B_U2]) / i2 + th[P_B_TP2]) / i2
+    j = th[P_J]
+    a[X_OMEGA, X_OMEGA] = -(th[P_P_PCE] + loss1 + loss2) / j
+    a[X_OMEGA, X_Y1] = -0.5 * th[P_P_PCE] * th[P_P_ACE] / j
+    a[X_OMEGA, X_Y2] = a[X_OMEGA, X_Y1]
+    a[X_Y1, X_OMEGA] = c[D_LEAD] / i1
+    a[X_Y2, X_OMEGA] = c[D_LEAD] / i2
+    a[X_THETA, X_OMEGA] = 1.0
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def linear_regime(x, dx, u, th, c, delta):
+    """True when the state ``x`` (derivative ``dx``) under the held input ``u`` lies in the
+    linear regime and, by the tangents of speed and torque, stays there for ``delta`` seconds."""
+    if u[3] != 0.0:
+        return False
+    slowest = max(c[C_I_TP1], c[C_I_TP2])  # the bevel-gear shafts turn slowest: their signs saturate last
+    omega_min = LINEAR_REGIME_MARGIN * SIGN_SATURATED_ARGUMENT * c[C_OMEGA_EPS] * slowest
+    if not stays_above(abs(x[X_OMEGA]), dx[X_OMEGA], delta, omega_min):
+        return False
+    gain = th[P_P_PCE]
+    m_n = gain * (th[P_P_ACE] * (c[C_K_Y] * u[0] - 0.5 * (x[X_Y1] + x[X_Y2])) - x[X_OMEGA])
+    rate = -gain * (th[P_P_ACE] * 0.5 * (dx[X_Y1] + dx[X_Y2]) + dx[X_OMEGA])
+    return stays_above(m_n, rate, delta, c[C_M_MIN]) and stays_below(m_n, rate, delta, c[C_M_MAX])

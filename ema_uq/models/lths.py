@@ -14,8 +14,9 @@ from numba import njit
 from ..params import Parameter, ParameterSet
 from .base import Model
 from .effects import CATALOGUE, augment_ema
-from .components import (BRAKE_AND_SETTINGS, DEG, brake_torque, const, loss_parameters,
-                         rig_gain, screw_constants, smooth_sign, station_torques)
+from .components import (BRAKE_AND_SETTINGS, DEG, LINEAR_REGIME_MARGIN, SIGN_SATURATED_ARGUMENT,
+                         brake_torque, const, loss_parameters, rig_gain, screw_constants, smooth_sign,
+                         station_torques, stays_above, stays_below)
 
 # --- estimated parameters Θ (eq. 47), kernel positions ----------------------------------
 (P_J, P_B_TS1, P_C_TS1, P_B_U1, P_C_U1, P_B_TP1, P_C_TP1,
@@ -152,3 +153,52 @@ def evaluate(x, u, th, c, dx, y, outputs=True):
         y[17] = m_mg2
         y[18] = m_tper
         y[19] = m_mger
+
+
+# --- the linear regime (integrator "hybrid", simulate.py) ---------------------------------
+# As for HT/LS: brake released, every smoothed sign saturated, the voltage limit inactive,
+# and eqs. 16-31, 39-41 are affine in the state (the input-shaft spring D_IS included).
+
+@njit(cache=True, inline="always", error_model="numpy")
+def linear_state_matrix(th, c, a):
+    """Write into ``a`` (5, 5) the state matrix ∂f/∂x, constant in the linear regime."""
+    a[:, :] = 0.0
+    i_mg = c[C_I_MG]
+    r_tp1 = 1.0 / (i_mg * c[C_I_BG1])                   # d Omega_TP1 / d Omega
+    r_tp2 = 1.0 / (i_mg * c[C_I_BG2] * c[C_I_TP2])      # d Omega_TP2 / d Omega
+    uer1 = th[P_B_TS1] * c[D_INV_COS_B1] + th[P_B_U1]   # d M_UERk / d Omega_Uk
+    uer2 = th[P_B_TS2] * c[D_INV_COS_B2] + th[P_B_U2]
+    mg2 = (uer2 / c[C_I_TP2] + th[P_B_TP2]) * r_tp2      # d M_MG2 / d Omega
+    tper = uer1 * r_tp1 / c[C_I_BG1] + mg2 / c[C_I_BG2] + th[P_B_TP1] * r_tp1
+    mger = tper / i_mg + th[P_B_MG] / i_mg               # d M_MGER / d Omega
+    gain = th[P_P_PCE] / th[P_K_N]                       # voltage per speed error
+    l_a = th[P_L_A]
+    j = th[P_J]
+    a[X_I_A, X_I_A] = -th[P_R_A] / l_a
+    a[X_I_A, X_OMEGA] = -(th[P_K_S] + gain) / l_a
+    a[X_I_A, X_Y1] = -0.5 * gain * th[P_P_ACE] / l_a
+    a[X_I_A, X_Y2] = a[X_I_A, X_Y1]
+    a[X_OMEGA, X_I_A] = th[P_K_N] / j
+    a[X_OMEGA, X_OMEGA] = -mger / j
+    a[X_OMEGA, X_THETA] = -c[C_D_IS] / (i_mg * i_mg * j)
+    a[X_Y1, X_OMEGA] = c[D_LEAD] * r_tp1
+    a[X_Y2, X_OMEGA] = c[D_LEAD] * r_tp2
+    a[X_THETA, X_OMEGA] = 1.0
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def linear_regime(x, dx, u, th, c, delta):
+    """True when the state ``x`` (derivative ``dx``) under the held input ``u`` lies in the
+    linear regime and, by the tangents of speed and voltage, stays there for ``delta`` seconds."""
+    if u[3] != 0.0:
+        return False
+    i_mg = c[C_I_MG]
+    slowest = max(i_mg, i_mg * c[C_I_BG1], i_mg * c[C_I_BG2] * c[C_I_TP2])  # Omega / slowest signed shaft
+    omega_min = LINEAR_REGIME_MARGIN * SIGN_SATURATED_ARGUMENT * c[C_OMEGA_EPS] * slowest
+    if not stays_above(abs(x[X_OMEGA]), dx[X_OMEGA], delta, omega_min):
+        return False
+    gain = th[P_P_PCE] / th[P_K_N]
+    u_a = gain * (th[P_P_ACE] * (c[C_K_Y] * u[0] - 0.5 * (x[X_Y1] + x[X_Y2])) - x[X_OMEGA])
+    rate = -gain * (th[P_P_ACE] * 0.5 * (dx[X_Y1] + dx[X_Y2]) + dx[X_OMEGA])
+    u_max = c[C_U_MAX]
+    return stays_above(u_a, rate, delta, -u_max) and stays_below(u_a, rate, delta, u_max)

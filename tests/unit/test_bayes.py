@@ -159,7 +159,7 @@ def test_the_likelihood_integrator_can_be_chosen(problem, fit):
     lp = res.idata.sample_stats["lp"].values.reshape(-1)[::37]
     np.testing.assert_allclose(rk4(draws), lp, atol=1e-2)
     assert not np.array_equal(rk4(draws), lp)                          # it did use the other integrator
-    with pytest.raises(BayesError, match="unknown integrator 'euler'; choose rk4 or dopri5"):
+    with pytest.raises(BayesError, match="unknown integrator 'euler'; choose rk4, dopri5 or hybrid"):
         bayes.sample(problem, fit, settings=SamplerSettings(**{**FAST.__dict__, "integrator": "euler"}))
     import dataclasses
 
