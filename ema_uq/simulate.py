@@ -233,6 +233,18 @@ def _dp_factor(err):
     return min(DP_GROW_MAX, max(DP_SHRINK_MAX, DP_SAFETY * err ** -0.2))
 
 
+#: a rejected step shorter than this fraction of the sample interval means the trajectory
+#: left the finite numbers (a NaN error norm never accepts a step): the run ends there
+DP_MIN_STEP_FRACTION = 1e-12
+#: accepted-step count returned by a run that diverged (its remaining outputs are NaN)
+DP_DIVERGED = -2
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _dp_diverged(err, h, dt):
+    return not (err < np.inf and h > DP_MIN_STEP_FRACTION * dt)
+
+
 @njit(cache=True, inline="always", error_model="numpy")
 def _dp_accept(x, stages, xt):
     for i in range(x.shape[0]):
@@ -283,7 +295,8 @@ def _dopri_one(model_id, th, consts, inputs, x0, dt, rtol, scale, n_checks, out,
     take the exact step (integrator "hybrid", checked at ``n_checks`` points). A non-empty
     ``steps`` records the accepted step lengths in order and ``counts`` (n_samples - 1,) their
     number per sample interval (0: an exact step), for :func:`_dopri_replay_one`; the accepted
-    count is -1 when ``steps`` is too short.
+    count is -1 when ``steps`` is too short, DP_DIVERGED when the trajectory left the finite
+    numbers (the outputs from the next sample on are NaN, as RK4 gives them).
     """
     x, xt, stages, scratch = _dp_workspace(x0, out.shape[1])
     k = np.empty(x0.shape[0])
@@ -333,6 +346,9 @@ def _dopri_one(model_id, th, consts, inputs, x0, dt, rtol, scale, n_checks, out,
             else:
                 n_rejected += 1
                 h = h * _dp_factor(err)
+                if _dp_diverged(err, h, dt):
+                    out[j + 1:, :] = np.nan
+                    return DP_DIVERGED, n_rejected
     return n_accepted, n_rejected
 
 
@@ -360,7 +376,7 @@ def _dopri_replay_one(model_id, th, consts, inputs, x0, dt, n_checks, steps, cou
         _dp_sample(model_id, x, inputs, j, u, th, consts, stages, k, scratch, out)
         if j == n_samples - 1:
             break
-        if counts[j] == 0:
+        if counts[j] == 0 and n_checks > 0:
             _zoh_step(x, stages[0], props, xt)
         for _ in range(counts[j]):
             h = steps[pos]
@@ -376,6 +392,9 @@ def _dopri_batch_shared(model_id, thetas, consts, inputs, x0, dt, rtol, scales, 
     Returns False (nothing else done) when ``steps`` is too short for set 0's sequence."""
     n_accepted, _ = _dopri_one(model_id, thetas[0], consts, inputs, x0, dt, rtol, scales[0], n_checks, out[0],
                                steps, counts)
+    if n_accepted == DP_DIVERGED:  # no step sequence to follow: differences around it are undefined
+        out[1:] = np.nan
+        return True
     if n_accepted < 0:
         return False
     for s in prange(1, thetas.shape[0]):
@@ -430,6 +449,9 @@ def _dopri_one_effects(model_id, th, consts, inputs, x0, dt, rtol, scale, out, s
             else:
                 n_rejected += 1
                 h = h * _dp_factor(err)
+                if _dp_diverged(err, h, dt):
+                    out[j + 1:, :] = np.nan
+                    return DP_DIVERGED, n_rejected
     return n_accepted, n_rejected
 
 
@@ -483,6 +505,9 @@ def _dopri_batch_shared_effects(model_id, thetas, consts, inputs, x0, dt, rtol, 
     """``_dopri_batch_shared`` for an augmented model."""
     n_accepted, _ = _dopri_one_effects(model_id, thetas[0], consts, inputs, x0, dt, rtol, scales[0], out[0],
                                        steps, counts)
+    if n_accepted == DP_DIVERGED:
+        out[1:] = np.nan
+        return True
     if n_accepted < 0:
         return False
     for s in prange(1, thetas.shape[0]):
@@ -642,6 +667,8 @@ def _dp_stable_step(a):
     below ~76 rad/s motor speed) the trajectory is smooth enough for 10 ms steps, beyond the
     limit of the fast current-speed mode: the error estimate accepts them, but every replay of
     those steps by another parameter set amplifies its difference (finite differences turn to noise)."""
+    if not np.all(np.isfinite(a)):  # such a run diverges on its own (NaN outputs)
+        return np.inf
     lam = np.linalg.eigvals(a.astype(np.complex128))
     h_max = np.inf
     for v in lam:
@@ -789,6 +816,10 @@ def simulate_batch(
         raise SimulationError(
             f"parameter array has shape {thetas.shape}; {model.name} needs (n_sets, {len(model.parameters)})"
         )
+    if not np.all(np.isfinite(thetas)):
+        row, col = np.argwhere(~np.isfinite(thetas))[0]
+        raise SimulationError(f"parameter set {row} has {model.parameters.names[col]} = {thetas[row, col]}; "
+                              "every parameter value must be a finite number")
     time = np.asarray(time, dtype=np.float64)
     inputs = np.ascontiguousarray(inputs, dtype=np.float64)
     if inputs.shape != (time.size, len(model.inputs)):
@@ -881,6 +912,8 @@ def step_statistics(model: Model | str, theta, time, inputs, *, integrator: str 
                                         model.rtol if rtol is None else float(rtol),
                                         error_scales(model, theta[None])[0],
                                         ZOH_CHECKS if integrator == "hybrid" else 0, out, np.empty(capacity), counts)
+        if accepted == DP_DIVERGED:
+            raise SimulationError("the trajectory left the finite numbers (diverged); check the parameter values")
         if accepted >= 0:
             break
         capacity *= 4

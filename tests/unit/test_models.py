@@ -639,3 +639,42 @@ def test_dormand_prince_stability_radius_and_the_hybrid_step_cap():
     assert caps["lths"] == pytest.approx(6.3e-3, rel=0.03)
     assert caps["htls"] == pytest.approx(0.9 * 3.3066 / 200.0, rel=0.05)
     assert sim._dp_stable_step(np.zeros((2, 2))) == np.inf       # nothing decays: no cap
+
+
+def test_a_non_finite_parameter_is_a_one_line_error(experiment):
+    model = get_model("htls")
+    thetas = np.repeat(model.parameters.nominal[None], 2, axis=0)
+    thetas[1, model.parameters.index("B_U2")] = np.inf
+    with pytest.raises(ValueError, match=r"parameter set 1 has B_U2 = inf; every parameter value must be a finite number"):
+        simulate_batch(model, thetas, experiment.time, experiment.input_matrix(), integrator="hybrid")
+
+
+def test_a_diverging_run_ends_in_nan_on_every_integrator(experiment):
+    """An unstable current loop (negative inductance) overflows after ~2 s: every integrator
+    returns NaN from the same sample on. The adaptive ones once retried ever shorter steps
+    forever on a NaN error norm; a finite-difference batch led by a diverged set is all NaN."""
+    from ema_uq.simulate import step_statistics
+
+    model = get_model("lths")
+    theta = model.parameters.nominal.copy()
+    theta[model.parameters.index("L_A")] = -1e-3
+    time, inputs = experiment.time, experiment.input_matrix(model)
+    first_nan = {}
+    for method in ("rk4", "dopri5", "hybrid"):
+        out = simulate_batch(model, theta, time, inputs, integrator=method)
+        bad = np.isnan(out).any(axis=1)
+        first_nan[method] = int(np.argmax(bad))
+        assert 0 < first_nan[method] < 400 and bad[first_nan[method]:].all(), method
+        assert np.isfinite(out[:first_nan[method]]).all()
+    assert len(set(first_nan.values())) == 1, first_nan
+    shared = simulate_batch(model, np.vstack([theta, theta * 1.0001]), time, inputs, integrator="hybrid",
+                            share_steps=True)
+    assert np.isnan(shared[1]).all() and np.array_equal(np.isnan(shared[0]).any(axis=1), bad)
+    with pytest.raises(ValueError, match="the trajectory left the finite numbers"):
+        step_statistics(model, theta, time, inputs)
+    # the augmented models' adaptive kernel has the same guard
+    augmented = model.with_effects(["backlash"])
+    theta_aug = augmented.parameters.nominal.copy()
+    theta_aug[augmented.parameters.index("L_A")] = -1e-3
+    out = simulate_batch(augmented, theta_aug, time, inputs, integrator="dopri5")
+    assert np.isnan(out[-1]).all() and np.isfinite(out[0]).all()
