@@ -56,7 +56,10 @@ simulate_batch(m, m.parameters.nominal, ex.time, ex.input_matrix())
 t3 = time.perf_counter()
 simulate_batch(m, m.parameters.nominal, ex.time, ex.input_matrix())
 t4 = time.perf_counter()
-print(json.dumps({"import": t1 - t0, "first_htls": t2 - t1, "first_lths": t3 - t2, "warm_lths": t4 - t3}))
+simulate_batch(m, m.parameters.nominal, ex.time, ex.input_matrix(), integrator="hybrid")
+t5 = time.perf_counter()
+print(json.dumps({"import": t1 - t0, "first_htls": t2 - t1, "first_lths": t3 - t2, "warm_lths": t4 - t3,
+                  "first_hybrid": t5 - t4}))
 """
 
 
@@ -183,6 +186,7 @@ def main(argv=None) -> None:
     for c in compile_times():
         print(f"  {c['label']:<24} import {c['import']:.2f}  first htls call {c['first_htls']:.2f}  "
               f"first lths call {c['first_lths']:.3f}  warm lths call {c['warm_lths']:.3f}  "
+              f"first hybrid call {c['first_hybrid']:.2f}  "
               f"whole process {c['process']:.2f}")
     print("load average at end (1, 5, 15 min): %.2f %.2f %.2f" % os.getloadavg())
 
