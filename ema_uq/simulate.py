@@ -240,6 +240,14 @@ DP_MIN_STEP_FRACTION = 1e-12
 DP_DIVERGED = -2
 
 
+@njit(cache=True, error_model="numpy")
+def _fill_nan(out, start):
+    """out[start:] = NaN, as a loop (a slice assignment adds seconds to the kernel's compile time)."""
+    for j in range(start, out.shape[0]):
+        for i in range(out.shape[1]):
+            out[j, i] = np.nan
+
+
 @njit(cache=True, inline="always", error_model="numpy")
 def _dp_diverged(err, h, dt):
     return not (err < np.inf and h > DP_MIN_STEP_FRACTION * dt)
@@ -286,13 +294,15 @@ def _dp_workspace(x0, n_outputs):
 
 
 @njit(cache=True, error_model="numpy")
-def _dopri_one(model_id, th, consts, inputs, x0, dt, rtol, scale, n_checks, out, steps, counts):
+def _dopri_one(model_id, th, consts, inputs, x0, dt, rtol, scale, props, h_stable, out, steps, counts):
     """Adaptive DP5(4) run of one parameter vector; writes outputs (n_samples, n_outputs) into ``out``.
 
     ``scale`` (n_states,): absolute error scale of each state (its typical magnitude; the
     absolute tolerance is rtol * scale), 0 to leave a state out of the error norm. Returns the
-    numbers of accepted and rejected steps. ``n_checks`` > 0: intervals in the linear regime
-    take the exact step (integrator "hybrid", checked at ``n_checks`` points). A non-empty
+    numbers of accepted and rejected steps. With propagators ``props`` (n_checks, 2, n, n),
+    :func:`_zoh_propagator_sets`, intervals in the linear regime take the exact step
+    (integrator "hybrid"; none for n_checks = 0, plain Dormand-Prince), and no step is longer
+    than ``h_stable`` (:func:`stable_steps`; infinite for plain Dormand-Prince). A non-empty
     ``steps`` records the accepted step lengths in order and ``counts`` (n_samples - 1,) their
     number per sample interval (0: an exact step), for :func:`_dopri_replay_one`; the accepted
     count is -1 when ``steps`` is too short, DP_DIVERGED when the trajectory left the finite
@@ -300,7 +310,7 @@ def _dopri_one(model_id, th, consts, inputs, x0, dt, rtol, scale, n_checks, out,
     """
     x, xt, stages, scratch = _dp_workspace(x0, out.shape[1])
     k = np.empty(x0.shape[0])
-    props, h_stable = _zoh_setup(model_id, th, consts, x0.shape[0], dt, n_checks)
+    n_checks = props.shape[0]
     delta = dt / max(n_checks, 1)
     n_samples = inputs.shape[0]
     h_open = dt  # the step that opened the previous interval: the transient repeats every sample
@@ -347,28 +357,28 @@ def _dopri_one(model_id, th, consts, inputs, x0, dt, rtol, scale, n_checks, out,
                 n_rejected += 1
                 h = h * _dp_factor(err)
                 if _dp_diverged(err, h, dt):
-                    out[j + 1:, :] = np.nan
+                    _fill_nan(out, j + 1)
                     return DP_DIVERGED, n_rejected
     return n_accepted, n_rejected
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def _dopri_batch(model_id, thetas, consts, inputs, x0, dt, rtol, scales, n_checks, out):
-    """Kernel entry: thetas (n_sets, n_params), scales (n_sets, n_states) -> out (n_sets, n_samples, n_outputs)."""
+def _dopri_batch(model_id, thetas, consts, inputs, x0, dt, rtol, scales, props, h_stable, out):
+    """Kernel entry: thetas (n_sets, n_params), scales (n_sets, n_states), props (n_sets,
+    n_checks, 2, n, n), h_stable (n_sets,) -> out (n_sets, n_samples, n_outputs)."""
     for s in prange(thetas.shape[0]):
-        _dopri_one(model_id, thetas[s], consts, inputs, x0, dt, rtol, scales[s], n_checks, out[s],
+        _dopri_one(model_id, thetas[s], consts, inputs, x0, dt, rtol, scales[s], props[s], h_stable[s], out[s],
                    np.empty(0), np.empty(0, dtype=np.int64))
 
 
 @njit(cache=True, error_model="numpy")
-def _dopri_replay_one(model_id, th, consts, inputs, x0, dt, n_checks, steps, counts, out):
+def _dopri_replay_one(model_id, th, consts, inputs, x0, props, steps, counts, out):
     """The accepted steps recorded by ``_dopri_one``, given (no error control): the same
     arithmetic, so the set that chose the steps is reproduced bit for bit and any other set is
     a smooth function of its parameters along that one step sequence. An interval without
     steps was an exact linear-regime step: it is repeated with this set's own propagator."""
     x, xt, stages, scratch = _dp_workspace(x0, out.shape[1])
     k = np.empty(x0.shape[0])
-    props, _ = _zoh_setup(model_id, th, consts, x0.shape[0], dt, n_checks)
     n_samples = inputs.shape[0]
     pos = 0
     u = np.empty(inputs.shape[1])
@@ -376,7 +386,7 @@ def _dopri_replay_one(model_id, th, consts, inputs, x0, dt, n_checks, steps, cou
         _dp_sample(model_id, x, inputs, j, u, th, consts, stages, k, scratch, out)
         if j == n_samples - 1:
             break
-        if counts[j] == 0 and n_checks > 0:
+        if counts[j] == 0 and props.shape[0] > 0:
             _zoh_step(x, stages[0], props, xt)
         for _ in range(counts[j]):
             h = steps[pos]
@@ -386,19 +396,21 @@ def _dopri_replay_one(model_id, th, consts, inputs, x0, dt, n_checks, steps, cou
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def _dopri_batch_shared(model_id, thetas, consts, inputs, x0, dt, rtol, scales, n_checks, out, steps, counts):
+def _dopri_batch_shared(model_id, thetas, consts, inputs, x0, dt, rtol, scales, props, h_stable, out, steps,
+                        counts):
     """``_dopri_batch`` where set 0 chooses the steps and every other set replays them: finite-
     difference sensitivities free of the step-selection noise of independent adaptive runs.
     Returns False (nothing else done) when ``steps`` is too short for set 0's sequence."""
-    n_accepted, _ = _dopri_one(model_id, thetas[0], consts, inputs, x0, dt, rtol, scales[0], n_checks, out[0],
-                               steps, counts)
+    n_accepted, _ = _dopri_one(model_id, thetas[0], consts, inputs, x0, dt, rtol, scales[0], props[0],
+                               h_stable[0], out[0], steps, counts)
     if n_accepted == DP_DIVERGED:  # no step sequence to follow: differences around it are undefined
-        out[1:] = np.nan
+        for s in range(1, out.shape[0]):
+            _fill_nan(out[s], 0)
         return True
     if n_accepted < 0:
         return False
     for s in prange(1, thetas.shape[0]):
-        _dopri_replay_one(model_id, thetas[s], consts, inputs, x0, dt, n_checks, steps, counts, out[s])
+        _dopri_replay_one(model_id, thetas[s], consts, inputs, x0, props[s], steps, counts, out[s])
     return True
 
 
@@ -450,7 +462,7 @@ def _dopri_one_effects(model_id, th, consts, inputs, x0, dt, rtol, scale, out, s
                 n_rejected += 1
                 h = h * _dp_factor(err)
                 if _dp_diverged(err, h, dt):
-                    out[j + 1:, :] = np.nan
+                    _fill_nan(out, j + 1)
                     return DP_DIVERGED, n_rejected
     return n_accepted, n_rejected
 
@@ -506,7 +518,8 @@ def _dopri_batch_shared_effects(model_id, thetas, consts, inputs, x0, dt, rtol, 
     n_accepted, _ = _dopri_one_effects(model_id, thetas[0], consts, inputs, x0, dt, rtol, scales[0], out[0],
                                        steps, counts)
     if n_accepted == DP_DIVERGED:
-        out[1:] = np.nan
+        for s in range(1, out.shape[0]):
+            _fill_nan(out[s], 0)
         return True
     if n_accepted < 0:
         return False
@@ -601,30 +614,46 @@ def _zoh_propagators(a, delta, n_points):
         norm *= 0.5
         halvings += 1
     h = delta / 2.0 ** halvings
-    ah = bal * h
-    # Γ(h) = h Σ_k (Ah)^k / (k+1)!, Φ(h) = I + A Γ(h)
-    term = np.eye(n) * h
-    gamma = term.copy()
+    # Γ(h) = h Σ_k (Ah)^k / (k+1)!, Φ(h) = I + A Γ(h); written as loops, not array expressions,
+    # which took numba seconds to compile
+    term = np.zeros((n, n))
+    gamma = np.zeros((n, n))
+    for i in range(n):
+        term[i, i] = h
+        gamma[i, i] = h
     tmp = np.empty((n, n))
     for k in range(1, ZOH_TAYLOR + 1):
-        _matmul(term, ah, tmp)
-        term = tmp / (k + 1)
-        gamma += term
-    phi = np.eye(n)
-    _matmul(bal, gamma, tmp)
-    phi += tmp
+        _matmul(term, bal, tmp)
+        for i in range(n):
+            for j in range(n):
+                term[i, j] = tmp[i, j] * (h / (k + 1))
+                gamma[i, j] += term[i, j]
+    phi = np.empty((n, n))
+    _matmul(bal, gamma, phi)
+    for i in range(n):
+        phi[i, i] += 1.0
     for _ in range(halvings):
         _matmul(phi, gamma, tmp)
-        gamma += tmp
+        for i in range(n):
+            for j in range(n):
+                gamma[i, j] += tmp[i, j]
         _matmul(phi, phi, tmp)
-        phi[:, :] = tmp
+        for i in range(n):
+            for j in range(n):
+                phi[i, j] = tmp[i, j]
     out = np.empty((n_points, 2, n, n))
-    out[0, 0] = phi
-    out[0, 1] = gamma
-    for p in range(1, n_points):  # Φ(t + δ) = Φ(t) Φ(δ), Γ(t + δ) = Γ(t) + Φ(t) Γ(δ)
-        _matmul(out[p - 1, 0], phi, out[p, 0])
-        _matmul(out[p - 1, 0], gamma, tmp)
-        out[p, 1] = out[p - 1, 1] + tmp
+    for p in range(n_points):
+        if p == 0:  # Φ(δ), Γ(δ)
+            for i in range(n):
+                for j in range(n):
+                    out[0, 0, i, j] = phi[i, j]
+                    out[0, 1, i, j] = gamma[i, j]
+        else:  # Φ(t + δ) = Φ(t) Φ(δ), Γ(t + δ) = Γ(t) + Φ(t) Γ(δ)
+            _matmul(out[p - 1, 0], phi, out[p, 0])
+            _matmul(out[p - 1, 0], gamma, tmp)
+            for i in range(n):
+                for j in range(n):
+                    out[p, 1, i, j] = out[p - 1, 1, i, j] + tmp[i, j]
     for p in range(n_points):  # undo the balancing: M = D M~ D^-1
         for i in range(n):
             for j in range(n):
@@ -661,34 +690,72 @@ DP_STABILITY_SAFETY = 0.9
 
 
 @njit(cache=True, error_model="numpy")
-def _dp_stable_step(a):
-    """Longest Dormand-Prince step that keeps every decaying mode of A inside the stability
-    region (infinite when none decays). Where the model is just outside its linear regime (LT/HS
-    below ~76 rad/s motor speed) the trajectory is smooth enough for 10 ms steps, beyond the
-    limit of the fast current-speed mode: the error estimate accepts them, but every replay of
-    those steps by another parameter set amplifies its difference (finite differences turn to noise)."""
-    if not np.all(np.isfinite(a)):  # such a run diverges on its own (NaN outputs)
-        return np.inf
-    lam = np.linalg.eigvals(a.astype(np.complex128))
-    h_max = np.inf
-    for v in lam:
-        if v.real < 0.0:
-            h_max = min(h_max, DP_STABILITY_SAFETY * _dp_stability_radius(math.atan2(v.imag, v.real)) / abs(v))
+def _dp_stable_steps(eigenvalues):
+    """(n_sets,) longest stable Dormand-Prince step for each row of (n_sets, n) eigenvalues."""
+    h_max = np.full(eigenvalues.shape[0], np.inf)
+    for s in range(eigenvalues.shape[0]):
+        for v in eigenvalues[s]:
+            if v.real < 0.0:
+                radius = _dp_stability_radius(math.atan2(v.imag, v.real))
+                h_max[s] = min(h_max[s], DP_STABILITY_SAFETY * radius / abs(v))
     return h_max
 
 
 @njit(cache=True, error_model="numpy")
-def _zoh_setup(model_id, th, consts, n_x, dt, n_checks):
-    """The propagators of one parameter set and the longest stable Dormand-Prince step (empty
-    and infinite when ``n_checks`` is 0: plain Dormand-Prince)."""
-    if n_checks == 0:
-        return np.empty((0, 2, n_x, n_x)), np.inf
-    a = np.empty((n_x, n_x))
-    _linear_state_matrix(model_id, th, consts, a)
-    return _zoh_propagators(a, dt / n_checks, n_checks), _dp_stable_step(a)
+def _linear_state_matrices(model_id, thetas, consts, n_x):
+    """(n_sets, n_x, n_x) state matrices of the linear regime, one per parameter set."""
+    a = np.empty((thetas.shape[0], n_x, n_x))
+    for s in range(thetas.shape[0]):
+        _linear_state_matrix(model_id, thetas[s], consts, a[s])
+    return a
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, error_model="numpy")
+def _zoh_propagator_sets(a, delta, n_points):
+    """(n_sets, n_points, 2, n, n) propagators of each state matrix (:func:`_zoh_propagators`),
+    computed before the integration kernel, which then compiles without them."""
+    n = a.shape[1]
+    out = np.empty((a.shape[0], n_points, 2, n, n))
+    for s in range(a.shape[0]):
+        out[s] = _zoh_propagators(a[s], delta, n_points)
+    return out
+
+
+def _stable_steps_of(a: np.ndarray) -> np.ndarray:
+    h_max = np.full(a.shape[0], np.inf)
+    finite = np.all(np.isfinite(a), axis=(1, 2))  # a set with overflowing entries diverges on its own
+    if np.any(finite):
+        h_max[finite] = _dp_stable_steps(np.linalg.eigvals(a[finite]).astype(np.complex128))
+    return h_max
+
+
+def stable_steps(model: Model, thetas: np.ndarray, constants: np.ndarray | None = None) -> np.ndarray:
+    """(n_sets,) longest Dormand-Prince step [s] that keeps every decaying mode of each set's
+    linear-regime state matrix inside the stability region (infinite when none decays).
+
+    The hybrid integrator holds its Dormand-Prince steps to this. Just outside the linear
+    regime (LT/HS below ~76 rad/s motor speed) the trajectory is smooth enough for 10 ms
+    steps, beyond the limit of the fast current-speed mode (|lambda| ~ 470 /s: 6.3 ms): the
+    error estimate accepts them, but every replay of those steps by another parameter set
+    amplifies its difference, and finite differences turn to noise. The eigenvalues are
+    taken here, in numpy, rather than inside the parallel kernel, where LAPACK's own threads
+    would contend with the kernel's.
+    """
+    consts = model.constants_vector() if constants is None else constants
+    return _stable_steps_of(_linear_state_matrices(model.model_id, np.atleast_2d(thetas),
+                                                   model.kernel_constants(consts), model.n_states))
+
+
+def _hybrid_setup(model: Model, thetas: np.ndarray, kernel_consts: np.ndarray, dt: float, hybrid: bool):
+    """Propagators (n_sets, n_checks, 2, n, n) and step caps (n_sets,) of the adaptive kernel:
+    none and infinite for plain Dormand-Prince."""
+    if not hybrid:
+        return np.empty((thetas.shape[0], 0, 2, model.n_states, model.n_states)), np.full(thetas.shape[0], np.inf)
+    a = _linear_state_matrices(model.model_id, thetas, kernel_consts, model.n_states)
+    return _zoh_propagator_sets(a, dt / ZOH_CHECKS, ZOH_CHECKS), _stable_steps_of(a)
+
+
+@njit(cache=True, error_model="numpy")
 def _zoh_interval(model_id, x, dx, u, th, consts, props, delta, xt, dxt):
     """True when the interval from ``x`` (derivative ``dx``) stays in the linear regime at
     every checked point; ``xt`` then holds the exact state at the interval's end."""
@@ -859,9 +926,9 @@ def simulate_batch(
         else:
             _dopri_batch_effects(*args, out)
     else:
-        n_checks = ZOH_CHECKS if method == "hybrid" else 0
-        args = (model.model_id, thetas, model.kernel_constants(consts), inputs, x0, dt, tol,
-                error_scales(model, thetas), n_checks)
+        kernel_consts = model.kernel_constants(consts)
+        args = (model.model_id, thetas, kernel_consts, inputs, x0, dt, tol, error_scales(model, thetas),
+                *_hybrid_setup(model, thetas, kernel_consts, dt, method == "hybrid"))
         if share_steps and thetas.shape[0] > 1:
             _run_shared(_dopri_batch_shared, args, out, time.size)
         else:
@@ -906,12 +973,14 @@ def step_statistics(model: Model | str, theta, time, inputs, *, integrator: str 
     out = np.empty((time.size, model.n_outputs))
     counts = np.zeros(time.size - 1, dtype=np.int64)
     capacity = 8 * time.size
+    dt = float(time[1] - time[0])
+    kernel_consts = model.kernel_constants(consts)
+    props, h_stable = _hybrid_setup(model, theta[None], kernel_consts, dt, integrator == "hybrid")
     while True:
-        accepted, rejected = _dopri_one(model.model_id, theta, model.kernel_constants(consts), inputs,
-                                        np.zeros(model.n_states), float(time[1] - time[0]),
+        accepted, rejected = _dopri_one(model.model_id, theta, kernel_consts, inputs, np.zeros(model.n_states), dt,
                                         model.rtol if rtol is None else float(rtol),
-                                        error_scales(model, theta[None])[0],
-                                        ZOH_CHECKS if integrator == "hybrid" else 0, out, np.empty(capacity), counts)
+                                        error_scales(model, theta[None])[0], props[0], h_stable[0],
+                                        out, np.empty(capacity), counts)
         if accepted == DP_DIVERGED:
             raise SimulationError("the trajectory left the finite numbers (diverged); check the parameter values")
         if accepted >= 0:

@@ -630,15 +630,14 @@ def test_dormand_prince_stability_radius_and_the_hybrid_step_cap():
         assert r == pytest.approx(radius, abs=2e-4)
         assert stability(0.999 * r * complex(math.cos(angle), math.sin(angle))) <= 1.0
         assert stability(1.001 * r * complex(math.cos(angle), math.sin(angle))) > 1.0
-    caps = {}
-    for concept in ("htls", "lths"):
-        model = get_model(concept)
-        a = np.empty((model.n_states, model.n_states))
-        MODULES[concept].linear_state_matrix(model.parameters.nominal, model.kernel_constants(), a)
-        caps[concept] = sim._dp_stable_step(a)
+    caps = {c: sim.stable_steps(get_model(c), get_model(c).parameters.nominal)[0] for c in ("htls", "lths")}
     assert caps["lths"] == pytest.approx(6.3e-3, rel=0.03)
     assert caps["htls"] == pytest.approx(0.9 * 3.3066 / 200.0, rel=0.05)
-    assert sim._dp_stable_step(np.zeros((2, 2))) == np.inf       # nothing decays: no cap
+    assert sim._dp_stable_steps(np.zeros((1, 2), dtype=complex))[0] == np.inf       # nothing decays: no cap
+    model = get_model("lths")
+    thetas = np.repeat(model.parameters.nominal[None], 2, axis=0)
+    thetas[1, model.parameters.index("J")] = 1e-310                                  # overflowing entries
+    assert sim.stable_steps(model, thetas)[1] == np.inf
 
 
 def test_a_non_finite_parameter_is_a_one_line_error(experiment):
