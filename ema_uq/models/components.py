@@ -107,3 +107,20 @@ def stays_above(value, rate, delta, bound):
 def stays_below(value, rate, delta, bound):
     """``value + delta |rate| < bound`` (see :func:`stays_above`)."""
     return value + delta * abs(rate) < bound
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def in_linear_regime(brake, omega, omega_rate, eps, slowest_ratio, gain, p_ace, y_r, y1, y2, y1_rate, y2_rate,
+                     lower, upper, delta):
+    """The linear regime of a cascaded-P EMA over the next ``delta`` seconds: brake released,
+    the motor fast enough that the slowest signed shaft (motor speed / ``slowest_ratio``) has
+    its smoothed sign saturated with margin, and the controller command
+    ``gain (p_ace (y_r - (y1 + y2) / 2) - omega)`` (torque or voltage) inside its limits."""
+    if brake != 0.0:
+        return False
+    omega_min = LINEAR_REGIME_MARGIN * SIGN_SATURATED_ARGUMENT * eps * slowest_ratio
+    if not stays_above(abs(omega), omega_rate, delta, omega_min):
+        return False
+    command = gain * (p_ace * (y_r - 0.5 * (y1 + y2)) - omega)
+    rate = -gain * (p_ace * 0.5 * (y1_rate + y2_rate) + omega_rate)
+    return stays_above(command, rate, delta, lower) and stays_below(command, rate, delta, upper)

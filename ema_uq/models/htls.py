@@ -15,9 +15,8 @@ from numba import njit
 from ..params import Parameter, ParameterSet
 from .base import Model
 from .effects import CATALOGUE, augment_ema
-from .components import (BRAKE_AND_SETTINGS, DEG, LINEAR_REGIME_MARGIN, SIGN_SATURATED_ARGUMENT,
-                         brake_torque, const, loss_parameters, rig_gain, screw_constants, smooth_sign,
-                         station_torques, stays_above, stays_below)
+from .components import (BRAKE_AND_SETTINGS, DEG, brake_torque, const, in_linear_regime, loss_parameters,
+                         rig_gain, screw_constants, smooth_sign, station_torques)
 
 # --- estimated parameters Θ (eq. 44), kernel positions ----------------------------------
 (P_J, P_B_TS1, P_C_TS1, P_B_U1, P_C_U1, P_B_TP1, P_C_TP1,
@@ -171,13 +170,6 @@ def linear_state_matrix(th, c, a):
 def linear_regime(x, dx, u, th, c, delta):
     """True when the state ``x`` (derivative ``dx``) under the held input ``u`` lies in the
     linear regime and, by the tangents of speed and torque, stays there for ``delta`` seconds."""
-    if u[3] != 0.0:
-        return False
     slowest = max(c[C_I_TP1], c[C_I_TP2])  # the bevel-gear shafts turn slowest: their signs saturate last
-    omega_min = LINEAR_REGIME_MARGIN * SIGN_SATURATED_ARGUMENT * c[C_OMEGA_EPS] * slowest
-    if not stays_above(abs(x[X_OMEGA]), dx[X_OMEGA], delta, omega_min):
-        return False
-    gain = th[P_P_PCE]
-    m_n = gain * (th[P_P_ACE] * (c[C_K_Y] * u[0] - 0.5 * (x[X_Y1] + x[X_Y2])) - x[X_OMEGA])
-    rate = -gain * (th[P_P_ACE] * 0.5 * (dx[X_Y1] + dx[X_Y2]) + dx[X_OMEGA])
-    return stays_above(m_n, rate, delta, c[C_M_MIN]) and stays_below(m_n, rate, delta, c[C_M_MAX])
+    return in_linear_regime(u[3], x[X_OMEGA], dx[X_OMEGA], c[C_OMEGA_EPS], slowest, th[P_P_PCE], th[P_P_ACE],
+                            c[C_K_Y] * u[0], x[X_Y1], x[X_Y2], dx[X_Y1], dx[X_Y2], c[C_M_MIN], c[C_M_MAX], delta)
