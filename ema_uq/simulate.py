@@ -642,18 +642,16 @@ def _zoh_propagators(a, delta, n_points):
             for j in range(n):
                 phi[i, j] = tmp[i, j]
     out = np.empty((n_points, 2, n, n))
-    for p in range(n_points):
-        if p == 0:  # Φ(δ), Γ(δ)
-            for i in range(n):
-                for j in range(n):
-                    out[0, 0, i, j] = phi[i, j]
-                    out[0, 1, i, j] = gamma[i, j]
-        else:  # Φ(t + δ) = Φ(t) Φ(δ), Γ(t + δ) = Γ(t) + Φ(t) Γ(δ)
-            _matmul(out[p - 1, 0], phi, out[p, 0])
-            _matmul(out[p - 1, 0], gamma, tmp)
-            for i in range(n):
-                for j in range(n):
-                    out[p, 1, i, j] = out[p - 1, 1, i, j] + tmp[i, j]
+    for i in range(n):  # loops, not slice assignments: those add seconds to the compile time
+        for j in range(n):
+            out[0, 0, i, j] = phi[i, j]
+            out[0, 1, i, j] = gamma[i, j]
+    for p in range(1, n_points):  # Φ(t + δ) = Φ(t) Φ(δ), Γ(t + δ) = Γ(t) + Φ(t) Γ(δ)
+        _matmul(out[p - 1, 0], phi, out[p, 0])
+        _matmul(out[p - 1, 0], gamma, tmp)
+        for i in range(n):
+            for j in range(n):
+                out[p, 1, i, j] = out[p - 1, 1, i, j] + tmp[i, j]
     for p in range(n_points):  # undo the balancing: M = D M~ D^-1
         for i in range(n):
             for j in range(n):
@@ -662,23 +660,27 @@ def _zoh_propagators(a, delta, n_points):
     return out
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def _dp_unstable(z):
+    """|R(z)| > 1 for the 5th-order Dormand-Prince solution, R(z) = sum_{k<=5} z^k / k! + z^6 / 600."""
+    return abs(1 + z * (1 + z * (1 / 2 + z * (1 / 6 + z * (1 / 24 + z * (1 / 120 + z / 600)))))) > 1.0
+
+
 @njit(cache=True, error_model="numpy")
 def _dp_stability_radius(angle):
     """|z| where the ray z = r e^{i angle} leaves the stability region |R(z)| <= 1 of the 5th-order
-    Dormand-Prince solution, R(z) = sum_{k<=5} z^k / k! + z^6 / 600 (3.3 on the negative axis)."""
+    Dormand-Prince solution (3.3 on the negative axis)."""
     direction = complex(math.cos(angle), math.sin(angle))
     lo = 0.0
     hi = 0.0
     for k in range(1, 200):  # scan out to |z| = 10 for the first step outside the region
         hi = 0.05 * k
-        z = hi * direction
-        if abs(1 + z * (1 + z * (1 / 2 + z * (1 / 6 + z * (1 / 24 + z * (1 / 120 + z / 600)))))) > 1.0:
+        if _dp_unstable(hi * direction):
             break
         lo = hi
     for _ in range(40):
         mid = 0.5 * (lo + hi)
-        z = mid * direction
-        if abs(1 + z * (1 + z * (1 / 2 + z * (1 / 6 + z * (1 / 24 + z * (1 / 120 + z / 600)))))) > 1.0:
+        if _dp_unstable(mid * direction):
             hi = mid
         else:
             lo = mid
