@@ -319,7 +319,7 @@ def test_independence_move_leaves_the_target_exactly_invariant():
         return -0.5 * np.einsum("ni,ij,nj->n", d, icov, d)
 
     proposal = bayes.StudentTProposal(m + 0.8 * sd, np.linalg.cholesky(2.0 * cov), 10.0)
-    exact = bayes._independence_move(proposal)
+    exact = bayes.IndependenceMove(proposal)
     naive = emcee.moves.MHMove(lambda coords, random: (proposal.draw(random, coords.shape[0]),
                                                        np.zeros(coords.shape[0])))
 
@@ -330,7 +330,7 @@ def test_independence_move_leaves_the_target_exactly_invariant():
         sampler.run_mcmc(start, 650)
         return sampler.get_chain(discard=50, flat=True)
 
-    defensive = bayes._independence_move(bayes.DefensiveMixture(
+    defensive = bayes.IndependenceMove(bayes.DefensiveMixture(
         proposal, bayes.StudentTProposal(proposal.center, 2.0 * proposal.chol, 10.0), 0.2))
     for good in (draws(exact), draws(defensive)):
         z_mean = (good.mean(axis=0) - m) / sd
@@ -442,7 +442,7 @@ def test_every_move_kind_evaluates_walkers_in_batches_and_is_recorded(problem, f
         return out
 
     monkeypatch.setattr(LogPosterior, "__call__", counting)
-    monkeypatch.setattr(bayes, "place_walkers", placing)
+    monkeypatch.setattr(bayes.sampler, "place_walkers", placing)
     settings = SamplerSettings(n_walkers=8, n_ensembles=1, max_steps=24, check_every=24, moves=moves, n_predictive=0)
     res = bayes.sample(problem, fit, settings=settings, seed=1, predictive=False)
     sampling = calls[placed["at"]:]

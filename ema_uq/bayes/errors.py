@@ -1,0 +1,7 @@
+"""The one exception of :mod:`ema_uq.bayes`."""
+from __future__ import annotations
+
+
+class BayesError(ValueError):
+    """Bad sampling input: init of another concept, impossible prior, walkers that cannot be
+    placed, a backend of another run."""
