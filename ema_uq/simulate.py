@@ -22,36 +22,68 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit, prange
 
-from .models import Model, get_model
+from .models import KERNEL_IDS, Model, get_model
 from .models import htls, lths
 from .models.effect_kernels import evaluate_htls_effects, evaluate_lths_effects
 
 
 class SimulationError(ValueError):
-    """Inputs or parameter arrays of the wrong shape, or a non-finite trajectory."""
+    """Inputs or parameter arrays of the wrong shape, an unknown kernel id, or a non-finite trajectory."""
+
+
+# --- kernel dispatch -------------------------------------------------------------------------
+# The ids come from models.base.KERNEL_IDS (module constants: numba compiles them in). numba
+# needs a static branch per right-hand side, so a new concept adds its branch to each helper
+# below and its id to NOMINAL_KERNELS / EFFECT_KERNELS; an id without a branch is refused by
+# ``kernel_family`` before any kernel runs, and raises inside a kernel rather than running
+# another concept's equations.
+HTLS_KERNEL, HTLS_EFFECTS_KERNEL = KERNEL_IDS["htls"]
+LTHS_KERNEL, LTHS_EFFECTS_KERNEL = KERNEL_IDS["lths"]
+#: ids of the nominal right-hand sides (_integrate_batch, _dopri_batch) and of the
+#: right-hand sides with unmodelled effects (_integrate_batch_effects, _dopri_batch_effects)
+NOMINAL_KERNELS = (HTLS_KERNEL, LTHS_KERNEL)
+EFFECT_KERNELS = (HTLS_EFFECTS_KERNEL, LTHS_EFFECTS_KERNEL)
+
+
+def kernel_family(model: Model) -> str:
+    """``"nominal"`` or ``"effects"``: the compiled entry that runs ``model.model_id``; any
+    other id is a one-line :class:`SimulationError`."""
+    if model.model_id in NOMINAL_KERNELS:
+        return "nominal"
+    if model.model_id in EFFECT_KERNELS:
+        return "effects"
+    raise SimulationError(f"model {model.name!r} has kernel id {model.model_id}, which no compiled kernel knows "
+                          f"(known: {', '.join(map(str, NOMINAL_KERNELS + EFFECT_KERNELS))}); take the model "
+                          "from get_model or with_effects, or register its kernel in models.base.KERNEL_IDS")
 
 
 @njit(cache=True, inline="always", error_model="numpy")
 def _evaluate(model_id, x, u, th, c, dx, y, outputs=True):
-    if model_id == 0:
+    if model_id == HTLS_KERNEL:
         htls.evaluate(x, u, th, c, dx, y, outputs)
-    else:
+    elif model_id == LTHS_KERNEL:
         lths.evaluate(x, u, th, c, dx, y, outputs)
+    else:
+        raise ValueError("unknown kernel id")
 
 
 @njit(cache=True, inline="always", error_model="numpy")
 def _linear_state_matrix(model_id, th, c, a):
-    if model_id == 0:
+    if model_id == HTLS_KERNEL:
         htls.linear_state_matrix(th, c, a)
-    else:
+    elif model_id == LTHS_KERNEL:
         lths.linear_state_matrix(th, c, a)
+    else:
+        raise ValueError("unknown kernel id")
 
 
 @njit(cache=True, inline="always", error_model="numpy")
 def _linear_regime(model_id, x, dx, u, th, c, delta):
-    if model_id == 0:
+    if model_id == HTLS_KERNEL:
         return htls.linear_regime(x, dx, u, th, c, delta)
-    return lths.linear_regime(x, dx, u, th, c, delta)
+    if model_id == LTHS_KERNEL:
+        return lths.linear_regime(x, dx, u, th, c, delta)
+    raise ValueError("unknown kernel id")
 
 
 @njit(cache=True, error_model="numpy")
@@ -100,15 +132,14 @@ def _integrate_batch(model_id, thetas, consts, inputs, x0, h, n_sub, out):
 # A second entry with the same RK4 loop around the augmented right-hand sides. Kept apart
 # so that the nominal kernel above is exactly the nominal one (and compiles as fast), and the
 # larger effect equations are compiled, inlined, only when an augmented model is first used.
-EFFECT_MODEL_IDS = (100, 101)
-
-
 @njit(cache=True, inline="always", error_model="numpy")
 def _evaluate_effects(model_id, x, u, th, c, dx, y):
-    if model_id == 100:
+    if model_id == HTLS_EFFECTS_KERNEL:
         evaluate_htls_effects(x, u, th, c, dx, y)
-    else:
+    elif model_id == LTHS_EFFECTS_KERNEL:
         evaluate_lths_effects(x, u, th, c, dx, y)
+    else:
+        raise ValueError("unknown kernel id")
 
 
 @njit(cache=True, error_model="numpy")
@@ -743,6 +774,8 @@ def stable_steps(model: Model, thetas: np.ndarray, constants: np.ndarray | None 
     taken here, in numpy, rather than inside the parallel kernel, where LAPACK's own threads
     would contend with the kernel's.
     """
+    if kernel_family(model) != "nominal":
+        raise SimulationError(f"{model.title} declares no linear regime; stable steps cover the nominal concepts")
     consts = model.constants_vector() if constants is None else constants
     return _stable_steps_of(_linear_state_matrices(model.model_id, np.atleast_2d(thetas),
                                                    model.kernel_constants(consts), model.n_states))
@@ -915,9 +948,9 @@ def simulate_batch(
         if model.postprocess is not None:
             out = model.postprocess(model, thetas, time, out)
         return out[0] if single else out
+    effects = kernel_family(model) == "effects"
     x0 = np.zeros(model.n_states) if x0 is None else np.ascontiguousarray(x0, dtype=np.float64)
     out = np.empty((thetas.shape[0], time.size, model.n_outputs))
-    effects = model.model_id in EFFECT_MODEL_IDS
     if method == "rk4":
         kernel = _integrate_batch_effects if effects else _integrate_batch
         kernel(model.model_id, thetas, model.kernel_constants(consts), inputs, x0, h, n_sub, out)
@@ -966,7 +999,7 @@ def step_statistics(model: Model | str, theta, time, inputs, *, integrator: str 
     model = get_model(model) if isinstance(model, str) else model
     if integrator not in ("dopri5", "hybrid"):
         raise SimulationError(f"step statistics need an adaptive integrator (dopri5 or hybrid), got {integrator!r}")
-    if model.batch_simulator is not None or model.model_id in EFFECT_MODEL_IDS:
+    if model.batch_simulator is not None or kernel_family(model) != "nominal":
         raise SimulationError(f"step statistics cover the nominal HT/LS and LT/HS models, not {model.name}")
     theta = np.ascontiguousarray(theta, dtype=np.float64)
     time = np.asarray(time, dtype=np.float64)

@@ -1,11 +1,12 @@
 """Model registry: ``get_model("htls")`` returns a concept's :class:`Model` description."""
 from __future__ import annotations
 
-from .base import INPUTS, REQUIRED_INPUTS, Model
-from . import emps, htls, lths
+from importlib import import_module
 
-_REGISTRY: dict[str, Model] = {htls.MODEL.name: htls.MODEL, lths.MODEL.name: lths.MODEL,
-                               emps.MODEL.name: emps.MODEL}
+from .base import INPUTS, KERNEL_IDS, REQUIRED_INPUTS, Model
+
+#: every concept of the kernel-id table, by name: the module ``models/<name>.py`` and its ``MODEL``
+_REGISTRY: dict[str, Model] = {name: import_module(f"{__name__}.{name}").MODEL for name in KERNEL_IDS}
 
 
 class UnknownConceptError(ValueError):
@@ -25,4 +26,4 @@ def concepts() -> tuple[str, ...]:
     return tuple(sorted(_REGISTRY))
 
 
-__all__ = ["INPUTS", "REQUIRED_INPUTS", "Model", "get_model", "concepts", "UnknownConceptError"]
+__all__ = ["INPUTS", "KERNEL_IDS", "REQUIRED_INPUTS", "Model", "get_model", "concepts", "UnknownConceptError"]

@@ -20,6 +20,19 @@ REQUIRED_INPUTS = ("phi_r", "F_ER1", "F_ER2")
 INPUT_UNITS = {"phi_r": "rad", "F_ER1": "N", "F_ER2": "N", "brake": "1",
                "qg": "m", "pulse": "V"}  # qg, pulse: EMPS (reference position, drive pulse)
 
+#: The one table of compiled-kernel ids: concept -> (id of its nominal right-hand side, id of
+#: its right-hand side with the unmodelled effects of ``effect_kernels.py``, or None). The
+#: registry (``models/__init__.py``) holds exactly the concepts named here, each concept module
+#: takes its ``model_id`` from here, and ``simulate.py`` has one static branch per id in its
+#: dispatch helpers (numba compiles branches, not look-ups in a table of functions) and refuses
+#: every other id. A new concept: its module, its line here, its branches in ``simulate.py``
+#: (none for a concept with its own ``batch_simulator``, as EMPS).
+KERNEL_IDS: dict[str, tuple[int, int | None]] = {
+    "htls": (0, 100),
+    "lths": (1, 101),
+    "emps": (2, None),  # its own compiled simulator (Model.batch_simulator)
+}
+
 
 @dataclass(frozen=True)
 class Model:
@@ -27,7 +40,8 @@ class Model:
 
     Attributes
     ----------
-    name, model_id : registry name and the integer the compiled kernel dispatches on.
+    name, model_id : registry name and the integer the compiled kernel dispatches on
+        (:data:`KERNEL_IDS`).
     states : names of the integrated states, in state-vector order.
     outputs : names of the measurable output channels, in output-array order.
     output_units : unit of each output channel.

@@ -44,7 +44,7 @@ import numpy as np
 from numba import njit, prange
 
 from ..params import Parameter, ParameterError, ParameterSet
-from .base import Model
+from .base import KERNEL_IDS, Model
 from .effects import Effect, EffectError
 
 # --- estimated parameters Θ of the nominal model, kernel positions ----------------------
@@ -407,7 +407,7 @@ def augment(model: Model, names: Sequence[str], values: Mapping[str, float] | No
 
 
 MODEL = Model(
-    name="emps", model_id=2, title="EMPS (ball-screw positioning benchmark, measured)",
+    name="emps", model_id=KERNEL_IDS["emps"][0], title="EMPS (ball-screw positioning benchmark, measured)",
     states=STATES, outputs=OUTPUTS, output_units=OUTPUT_UNITS,
     parameters=PARAMETERS, constants=CONSTANTS, derive=derived_constants, integration_step=1e-4,
     inputs=INPUTS, required_inputs=REQUIRED_INPUTS, batch_simulator=BatchSimulator(),

@@ -13,7 +13,7 @@ import numpy as np
 from numba import njit
 
 from ..params import Parameter, ParameterSet
-from .base import Model
+from .base import KERNEL_IDS, Model
 from .effects import CATALOGUE, augment_ema
 from .components import (BRAKE_AND_SETTINGS, DEG, brake_torque, const, in_linear_regime, loss_parameters,
                          rig_gain, screw_constants, smooth_sign, station_torques)
@@ -70,12 +70,12 @@ def derived_constants(c: np.ndarray) -> np.ndarray:
 
 
 MODEL = Model(
-    name="htls", model_id=0, title="HT/LS (high torque / low speed)",
+    name="htls", model_id=KERNEL_IDS["htls"][0], title="HT/LS (high torque / low speed)",
     states=STATES, outputs=OUTPUTS, output_units=OUTPUT_UNITS,
     parameters=PARAMETERS, constants=CONSTANTS, derive=derived_constants, integration_step=5e-4,
     integrator="rk4", rtol=5e-8, state_scales=(30.0, 0.3, 0.3, 500.0),  # Omega, y1, y2, theta
     effect_catalogue=CATALOGUE, augment=partial(
-        augment_ema, model_id=100,  # effect_kernels.evaluate_htls_effects
+        augment_ema, model_id=KERNEL_IDS["htls"][1],  # effect_kernels.evaluate_htls_effects
         extra_states={"backlash": ("backlash_b1", "backlash_b2"), "shaft_compliance": ("shaft_twist", "shaft_twist_rate")},
         # play relaxation [s] and clamp softness, load inertia fraction, fastest resolved
         # torsional mode (1/step) [rad/s], ripple periods per motor revolution

@@ -12,7 +12,7 @@ import numpy as np
 from numba import njit
 
 from ..params import Parameter, ParameterSet
-from .base import Model
+from .base import KERNEL_IDS, Model
 from .effects import CATALOGUE, augment_ema
 from .components import (BRAKE_AND_SETTINGS, DEG, brake_torque, const, in_linear_regime, loss_parameters,
                          rig_gain, screw_constants, smooth_sign, station_torques)
@@ -75,12 +75,12 @@ def derived_constants(c: np.ndarray) -> np.ndarray:
 
 
 MODEL = Model(
-    name="lths", model_id=1, title="LT/HS (low torque / high speed)",
+    name="lths", model_id=KERNEL_IDS["lths"][0], title="LT/HS (low torque / high speed)",
     states=STATES, outputs=OUTPUTS, output_units=OUTPUT_UNITS,
     parameters=PARAMETERS, constants=CONSTANTS, derive=derived_constants, integration_step=2e-4,
     integrator="rk4", rtol=2e-8, state_scales=(30.0, 900.0, 0.3, 0.3, 1000.0),  # I_A, Omega, y1, y2, theta
     effect_catalogue=CATALOGUE, augment=partial(
-        augment_ema, model_id=101,  # effect_kernels.evaluate_lths_effects
+        augment_ema, model_id=KERNEL_IDS["lths"][1],  # effect_kernels.evaluate_lths_effects
         extra_states={"backlash": ("backlash_b",), "shaft_compliance": ("shaft_twist", "shaft_twist_rate")},
         # play relaxation [s] and clamp softness, load inertia fraction, fastest resolved
         # torsional mode (1/step) [rad/s], ripple periods per motor revolution

@@ -330,6 +330,35 @@ def test_unknown_integrator_is_a_one_line_error(experiment):
                        integrator="euler")
 
 
+@pytest.mark.parametrize("integrator", ["rk4", "dopri5", "hybrid"])
+@pytest.mark.parametrize("concept, effects", [("htls", ()), ("lths", ("backlash",))])
+def test_a_model_with_an_unknown_kernel_id_is_refused(concept, effects, integrator, experiment):
+    """An id no compiled kernel knows is refused before the kernel runs (the dispatch once ran
+    LT/HS for any id but HT/LS's)."""
+    import dataclasses
+
+    from ema_uq.simulate import SimulationError
+
+    model = dataclasses.replace(get_model(concept).with_effects(effects), model_id=7)
+    with pytest.raises(SimulationError, match=r"^model '\w+' has kernel id 7, which no compiled kernel knows "
+                                              r"\(known: 0, 1, 100, 101\); .*KERNEL_IDS$"):
+        simulate_batch(model, model.parameters.nominal, experiment.time, experiment.input_matrix(model),
+                       integrator=integrator)
+
+
+def test_every_concept_is_registered_with_its_own_kernel_ids():
+    from ema_uq.models import KERNEL_IDS, concepts
+
+    assert concepts() == tuple(sorted(KERNEL_IDS))
+    ids = [i for pair in KERNEL_IDS.values() for i in pair if i is not None]
+    assert len(ids) == len(set(ids))
+    for name, (nominal, augmented) in KERNEL_IDS.items():
+        model = get_model(name)
+        assert model.name == name and model.model_id == nominal
+        if augmented is not None:
+            assert model.with_effects(model.available_effects[:1]).model_id == augmented
+
+
 @pytest.mark.parametrize("concept", ["htls", "lths"])
 def test_simulator_matches_scipy_reference(concept, experiment, nominal_runs):
     """Full deploy-retract run against DOP853 (rtol 1e-10) of the independent reference, for
