@@ -63,7 +63,6 @@ PROFILE_SETTINGS = Settings(tolerance=1e-6, max_iterations=30, cramer_rao=False)
 GAMMA_CAP = 1e12
 
 VERDICTS = ("identifiable", "practically_non_identifiable", "structurally_non_identifiable")
-REALISTIC_CHANNELS = {"htls": ("Omega", "y1", "y2", "I_A"), "lths": ("Omega", "y1", "y2", "I_A", "U_A")}
 
 
 class IdentifiabilityError(ValueError):
@@ -75,19 +74,20 @@ class IdentifiabilityError(ValueError):
 # sensor sets
 # --------------------------------------------------------------------------------------
 def sensor_set(model: Model, item: str | Mapping[str, Any]) -> tuple[str, tuple[str, ...]]:
-    """(name, channels) of ``"full"`` (every output), ``"realistic"`` (rig sensors) or
-    ``{"name": ..., "channels": [...]}``."""
+    """(name, channels) of a sensor set the concept defines (``Model.sensor_sets``: ``"full"``
+    = every output, ``"realistic"`` = rig sensors) or of ``{"name": ..., "channels": [...]}``."""
     if isinstance(item, Mapping):
         channels = tuple(item["channels"])
         model.output_index(channels)
         return str(item["name"]), channels
+    if item in model.sensor_sets:
+        return item, tuple(model.sensor_sets[item])
     if item == "full":
         return "full", tuple(model.outputs)
     if item == "realistic":
-        if model.name in REALISTIC_CHANNELS:
-            return "realistic", REALISTIC_CHANNELS[model.name]
         raise IdentifiabilityError(f"no realistic sensor set is defined for concept {model.name}; give channels")
-    raise IdentifiabilityError(f"unknown sensor set {item!r}; use full, realistic or a name with channels")
+    known = ", ".join(dict.fromkeys(("full", *model.sensor_sets)))
+    raise IdentifiabilityError(f"unknown sensor set {item!r}; use {known} or a name with channels")
 
 
 # --------------------------------------------------------------------------------------
@@ -292,34 +292,6 @@ def identifiable_subset(info: Information, exclude: Sequence[str] = (), rtol: fl
                 continue
         chosen.append(int(j))
     return [info.names[j] for j in sorted(chosen)]
-
-
-# --------------------------------------------------------------------------------------
-# structure of the drive trains: every loss reflected to the motor shaft
-# --------------------------------------------------------------------------------------
-def motor_shaft_factors(model: Model, constants: np.ndarray | None = None) -> dict[str, float]:
-    """Factor f_j with which each loss parameter enters the load torque at the motor shaft
-    (MODEL_SPEC: M = Σ f_B B Ω + Σ f_C C sgn(·)); losses with the same speed argument whose
-    factors are known act only through Σ f_j θ_j."""
-    c = dict(zip(model.constants.names, model.constants_vector() if constants is None else constants))
-    cos = math.cos
-    if model.name == "htls":
-        f = {}
-        for k in (1, 2):
-            i, cb = c[f"i_TP{k}"], cos(c[f"beta{k}"])
-            f.update({f"B_TS{k}": 1 / (cb * i * i), f"B_U{k}": 1 / (i * i), f"B_TP{k}": 1 / i,
-                      f"C_TS{k}": 1 / (cb * i), f"C_U{k}": 1 / i, f"C_TP{k}": 1.0})
-        return f
-    if model.name == "lths":
-        i_mg, i_bg1, i_bg2, i_tp2 = c["i_MG"], c["i_BG1"], c["i_BG2"], c["i_TP2"]
-        g1, g2 = i_mg * i_bg1, i_mg * i_bg2 * i_tp2          # motor to screw 1, screw 2
-        cb1, cb2 = cos(c["beta1"]), cos(c["beta2"])
-        return {"B_TS1": 1 / (cb1 * g1 * g1), "B_U1": 1 / (g1 * g1), "B_TP1": 1 / (i_mg * g1),
-                "B_TS2": 1 / (cb2 * g2 * g2), "B_U2": 1 / (g2 * g2), "B_TP2": 1 / (i_mg * i_bg2 * g2),
-                "B_MG": 1 / i_mg,
-                "C_TS1": 1 / (cb1 * g1), "C_U1": 1 / g1, "C_TP1": 1 / i_mg,
-                "C_TS2": 1 / (cb2 * g2), "C_U2": 1 / g2, "C_TP2": 1 / (i_mg * i_bg2), "C_MG": 1.0}
-    return {}
 
 
 def combination_expression(names: Sequence[str], coefficients: Sequence[float], model: Model,
@@ -546,11 +518,11 @@ def combinations(info: Information, theta_hat: Mapping[str, float], model: Model
     Data side: the directions of the group's coordinate space orthogonal to its null and weak
     directions (``weak`` in the entry says whether a weak, not exactly null, direction joined
     the group: then the members are lumped in practice rather than by structure).
-    Structure side: the motor-shaft factors of :func:`motor_shaft_factors`. When the group has
+    Structure side: the motor-shaft factors ``model.loss_factors``. When the group has
     one combination and both agree within ``agreement`` (relative), the structural expression
     is reported; otherwise the data-derived coefficients. ``std`` is its Cramér-Rao σ.
     """
-    factors = motor_shaft_factors(model, constants)
+    factors = model.loss_factors(constants)
     proj = info.weak_projector
     exact = info.null_projector
     out = []

@@ -53,6 +53,10 @@ class Model:
         where the concept is linear, "dopri5" elsewhere) or "rk4" (fixed ``integration_step``).
     state_scales : typical magnitude of each state (state units), the adaptive error scale.
     derive : constants computed once per simulation from ``constants`` (appended in kernel order).
+    sensor_sets : named sets of output channels, e.g. ``"full"`` (every output) and
+        ``"realistic"`` (the sensors of the rig), as the identifiability study compares them.
+    loss_referral : ``f(constants by name) -> {loss parameter: factor}``, how each friction
+        and damping parameter is referred to the motor shaft (see :meth:`loss_factors`).
     """
 
     name: str
@@ -70,6 +74,9 @@ class Model:
     integrator: str = "rk4"
     rtol: float = 3e-8
     state_scales: tuple[float, ...] = ()
+    sensor_sets: Mapping[str, tuple[str, ...]] = field(default_factory=dict, compare=False, repr=False)
+    loss_referral: Callable[[Mapping[str, float]], dict[str, float]] | None = field(
+        default=None, compare=False, repr=False)
     #: a concept with its own compiled simulator (e.g. a discrete controller around a
     #: continuous plant) sets this; ``simulate_batch`` then calls
     #: ``batch_simulator(model, thetas, inputs, kernel_constants, x0, dt, n_sub)``.
@@ -84,6 +91,24 @@ class Model:
     augment: Callable | None = field(default=None, compare=False, repr=False)
     postprocess: Callable | None = field(default=None, compare=False, repr=False)
     built_from: "Model | None" = field(default=None, compare=False, repr=False)
+
+    def __post_init__(self) -> None:
+        for set_name, channels in self.sensor_sets.items():
+            stray = [ch for ch in channels if ch not in self.outputs]
+            if stray:
+                raise ParameterError(f"sensor set {set_name!r} of concept {self.name} names unknown output "
+                                     f"{stray[0]!r}; outputs: {', '.join(self.outputs)}")
+
+    # --- drive-train structure ------------------------------------------------------
+    def loss_factors(self, constants: np.ndarray | None = None) -> dict[str, float]:
+        """Factor f_j with which each loss parameter enters the load torque at the motor shaft
+        (MODEL_SPEC: M = Σ f_B B Ω + Σ f_C C sgn(·)) at the design ``constants`` (default:
+        nominal); losses with the same speed argument whose factors are known act only through
+        Σ f_j θ_j. Empty for a concept without ``loss_referral``."""
+        if self.loss_referral is None:
+            return {}
+        c = self.constants_vector() if constants is None else constants
+        return self.loss_referral(dict(zip(self.constants.names, c)))
 
     # --- unmodelled effects ---------------------------------------------------------
     @property

@@ -411,7 +411,7 @@ MODEL = Model(
     states=STATES, outputs=OUTPUTS, output_units=OUTPUT_UNITS,
     parameters=PARAMETERS, constants=CONSTANTS, derive=derived_constants, integration_step=1e-4,
     inputs=INPUTS, required_inputs=REQUIRED_INPUTS, batch_simulator=BatchSimulator(),
-    effect_catalogue=EFFECTS, augment=augment,
+    sensor_sets={"full": OUTPUTS}, effect_catalogue=EFFECTS, augment=augment,
 )
 
 

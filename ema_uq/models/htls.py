@@ -69,11 +69,23 @@ def derived_constants(c: np.ndarray) -> np.ndarray:
     return np.array(screw_constants(c[C_R], c[C_GAMMA], c[C_BETA1], c[C_BETA2]))
 
 
+def loss_factors(c) -> dict[str, float]:
+    """``Model.loss_referral``: each station loss referred to the motor shaft through its bevel
+    gear (1/i) and, for the screw, the U-joint (1/cos β); viscous terms once more by the speed."""
+    f = {}
+    for k in (1, 2):
+        i, cb = c[f"i_TP{k}"], math.cos(c[f"beta{k}"])
+        f.update({f"B_TS{k}": 1 / (cb * i * i), f"B_U{k}": 1 / (i * i), f"B_TP{k}": 1 / i,
+                  f"C_TS{k}": 1 / (cb * i), f"C_U{k}": 1 / i, f"C_TP{k}": 1.0})
+    return f
+
+
 MODEL = Model(
     name="htls", model_id=KERNEL_IDS["htls"][0], title="HT/LS (high torque / low speed)",
     states=STATES, outputs=OUTPUTS, output_units=OUTPUT_UNITS,
     parameters=PARAMETERS, constants=CONSTANTS, derive=derived_constants, integration_step=5e-4,
     integrator="rk4", rtol=5e-8, state_scales=(30.0, 0.3, 0.3, 500.0),  # Omega, y1, y2, theta
+    sensor_sets={"full": OUTPUTS, "realistic": ("Omega", "y1", "y2", "I_A")}, loss_referral=loss_factors,
     effect_catalogue=CATALOGUE, augment=partial(
         augment_ema, model_id=KERNEL_IDS["htls"][1],  # effect_kernels.evaluate_htls_effects
         extra_states={"backlash": ("backlash_b1", "backlash_b2"), "shaft_compliance": ("shaft_twist", "shaft_twist_rate")},

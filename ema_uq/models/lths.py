@@ -74,11 +74,25 @@ def derived_constants(c: np.ndarray) -> np.ndarray:
     return np.array(screw_constants(c[C_R], c[C_GAMMA], c[C_BETA1], c[C_BETA2]))
 
 
+def loss_factors(c) -> dict[str, float]:
+    """``Model.loss_referral``: each loss referred to the motor shaft through the gears between
+    them (magnetic gear, bevel gears) and, for a screw, its U-joint (1/cos β)."""
+    i_mg, i_bg1, i_bg2, i_tp2 = c["i_MG"], c["i_BG1"], c["i_BG2"], c["i_TP2"]
+    g1, g2 = i_mg * i_bg1, i_mg * i_bg2 * i_tp2          # motor to screw 1, screw 2
+    cb1, cb2 = math.cos(c["beta1"]), math.cos(c["beta2"])
+    return {"B_TS1": 1 / (cb1 * g1 * g1), "B_U1": 1 / (g1 * g1), "B_TP1": 1 / (i_mg * g1),
+            "B_TS2": 1 / (cb2 * g2 * g2), "B_U2": 1 / (g2 * g2), "B_TP2": 1 / (i_mg * i_bg2 * g2),
+            "B_MG": 1 / i_mg,
+            "C_TS1": 1 / (cb1 * g1), "C_U1": 1 / g1, "C_TP1": 1 / i_mg,
+            "C_TS2": 1 / (cb2 * g2), "C_U2": 1 / g2, "C_TP2": 1 / (i_mg * i_bg2), "C_MG": 1.0}
+
+
 MODEL = Model(
     name="lths", model_id=KERNEL_IDS["lths"][0], title="LT/HS (low torque / high speed)",
     states=STATES, outputs=OUTPUTS, output_units=OUTPUT_UNITS,
     parameters=PARAMETERS, constants=CONSTANTS, derive=derived_constants, integration_step=2e-4,
     integrator="rk4", rtol=2e-8, state_scales=(30.0, 900.0, 0.3, 0.3, 1000.0),  # I_A, Omega, y1, y2, theta
+    sensor_sets={"full": OUTPUTS, "realistic": ("Omega", "y1", "y2", "I_A", "U_A")}, loss_referral=loss_factors,
     effect_catalogue=CATALOGUE, augment=partial(
         augment_ema, model_id=KERNEL_IDS["lths"][1],  # effect_kernels.evaluate_lths_effects
         extra_states={"backlash": ("backlash_b",), "shaft_compliance": ("shaft_twist", "shaft_twist_rate")},

@@ -139,7 +139,7 @@ def test_motor_shaft_factors_match_the_model(module):
     omega = 400.0                                 # far above the smoothing speed on every shaft
     x[model.states.index("Omega")] = omega
     u = np.zeros(len(model.inputs))
-    factors = ident.motor_shaft_factors(model)
+    factors = model.loss_factors()
     j_pos = model.parameters.index("J")
 
     def accel(theta):
