@@ -1,8 +1,9 @@
 # ema_uq workflow: every rule calls the `ema-uq` CLI; the numerics live in the package.
 #
-# Study values enter rules as params (never the study file as an input), so a changed value
-# re-runs exactly the rules that use it. Rules whose CLI verb reads a study section itself
-# (sensitivity, identifiability) carry that section as a `settings` param for the same reason.
+# Every rule hands its CLI verb the study file (`--study`); the verb reads its settings through
+# ema_uq.study.settings_for. The study file is never an input: the rule carries those same
+# settings as its `settings` param, so a changed study value re-runs exactly the rules whose
+# verb reads it.
 # `snakemake --lint` asks for a conda environment per rule: the software is the package
 # itself, installed once by `pip install -e .` (pyproject.toml pins its dependencies), so
 # every rule shares that one environment and none is declared.
@@ -13,7 +14,7 @@ from importlib import resources
 from snakemake.utils import validate
 
 from ema_uq.io import emps_files
-from ema_uq.study import load_study
+from ema_uq.study import DATA_ROLES, load_study, settings_for
 
 configfile: "config/config.yaml"
 
@@ -43,23 +44,13 @@ def concept(wildcards):
     return study(wildcards)["concept"]
 
 
-def settings(*keys):
-    """A params value that changes exactly when these study sections change."""
-    return lambda w: json.dumps({k: study(w).get(k) for k in keys}, sort_keys=True)
+def settings(verb):
+    """A params value that changes exactly when the study settings the verb reads change."""
+    return lambda w: json.dumps(settings_for(study(w), verb, role=getattr(w, "role", None)), sort_keys=True)
 
 
 def study_file(wildcards):
     return f"studies/{wildcards.study}.yaml"
-
-
-def data_seed(wildcards):
-    # estimation, validation and the rig-like records must be independent noise draws
-    offsets = {"estimation": 0, "validation": 1000, "rig_estimation": 2000, "rig_validation": 3000}
-    return study(wildcards)["seed"] + offsets[wildcards.role]
-
-
-def option(flag, values):
-    return f"{flag} {' '.join(str(v) for v in values)}" if values else ""
 
 
 def data_file(role):
@@ -92,7 +83,7 @@ def stage_outputs(w):
 
 wildcard_constraints:
     study="[A-Za-z0-9_-]+",
-    role="estimation|validation|rig_estimation|rig_validation",
+    role="|".join(DATA_ROLES),
     method="gn|lm",
     chunk="[0-9]+",
 
@@ -107,13 +98,9 @@ rule simulate:
         "results/{study}/data/{role}.nc",
     params:
         concept=concept,
-        experiment=lambda w: study(w)["data"][w.role.replace("rig_", "")],
-        noise=lambda w: study(w)["data"]["noise"],
-        seed=data_seed,
-        sets=lambda w: " ".join(f"--set {k}={v}" for k, v in study(w)["data"].get("set", {}).items()),
-        channels=lambda w: option("--channels", study(w)["data"].get("channels")),
+        study_file=study_file,
         # the rig-like records carry the study's hidden effects; the data file does not name them
-        effects=lambda w: option("--effect", study(w)["gap"]["rig_effects"]) if w.role.startswith("rig_") else "",
+        settings=settings("simulate"),
     log:
         "results/{study}/logs/simulate_{role}.log",
     benchmark:
@@ -122,8 +109,7 @@ rule simulate:
         mem_mb=1000,
         runtime=5,
     shell:
-        "ema-uq simulate --concept {params.concept} --experiment {params.experiment} "
-        "--noise {params.noise} --seed {params.seed} {params.sets} {params.channels} {params.effects} "
+        "ema-uq simulate --concept {params.concept} --study {params.study_file} --role {wildcards.role} "
         "--out {output} > {log} 2>&1"
 
 
@@ -135,11 +121,8 @@ rule identify:
         "results/{study}/fit_{method}.json",
     params:
         concept=concept,
-        perturb=lambda w: study(w)["identify"]["perturb"],
-        seed=lambda w: study(w)["seed"],
-        max_iterations=lambda w: study(w)["identify"]["max_iterations"],
-        fix=lambda w: option("--fix", study(w)["identify"].get("fix")),
-        channels=lambda w: option("--channels", study(w)["data"].get("channels")),
+        study_file=study_file,
+        settings=settings("identify"),
     log:
         "results/{study}/logs/identify_{method}.log",
     benchmark:
@@ -148,9 +131,8 @@ rule identify:
         mem_mb=2000,
         runtime=15,
     shell:
-        "ema-uq identify {input.estimation} --concept {params.concept} --method {wildcards.method} "
-        "--perturb {params.perturb} --seed {params.seed} --max-iterations {params.max_iterations} "
-        "{params.fix} {params.channels} --validate {input.validation} --out {output} > {log} 2>&1"
+        "ema-uq identify {input.estimation} --concept {params.concept} --study {params.study_file} "
+        "--method {wildcards.method} --validate {input.validation} --out {output} > {log} 2>&1"
 
 
 rule sample:
@@ -161,14 +143,8 @@ rule sample:
         "results/{study}/posterior.nc",
     params:
         concept=concept,
-        seed=lambda w: study(w)["seed"],
-        walkers=lambda w: option("--walkers", [study(w)["sample"]["walkers"]] if study(w)["sample"]["walkers"] else []),
-        ensembles=lambda w: study(w)["sample"]["ensembles"],
-        max_steps=lambda w: study(w)["sample"]["max_steps"],
-        check_every=lambda w: study(w)["sample"]["check_every"],
-        moves=lambda w: study(w)["sample"]["moves"],
-        defensive=lambda w: study(w)["sample"]["defensive"],
-        integrator=lambda w: option("--integrator", [study(w)["sample"]["integrator"]] if study(w)["sample"]["integrator"] else []),
+        study_file=study_file,
+        settings=settings("sample"),
     log:
         "results/{study}/logs/sample.log",
     benchmark:
@@ -178,10 +154,8 @@ rule sample:
         mem_mb=4000,
         runtime=60,
     shell:
-        "ema-uq sample {input.estimation} --concept {params.concept} --init {input.fit} --seed {params.seed} "
-        "{params.walkers} --ensembles {params.ensembles} --max-steps {params.max_steps} "
-        "--check-every {params.check_every} --moves {params.moves} --defensive {params.defensive} {params.integrator} --quiet "
-        "--replace-stale-backend --backend results/{wildcards.study}/posterior.h5 --out {output} > {log} 2>&1"
+        "ema-uq sample {input.estimation} --concept {params.concept} --study {params.study_file} "
+        "--init {input.fit} --quiet --replace-stale-backend --backend results/{wildcards.study}/posterior.h5 --out {output} > {log} 2>&1"
 
 
 rule sensitivity_chunk:
@@ -191,7 +165,7 @@ rule sensitivity_chunk:
         concept=concept,
         study_file=study_file,
         n_chunks=lambda w: study(w)["sensitivity"]["chunks"],
-        settings=settings("seed", "data", "sensitivity"),
+        settings=settings("sensitivity"),
     log:
         "results/{study}/logs/sensitivity_chunk_{chunk}.log",
     benchmark:
@@ -213,7 +187,7 @@ rule sensitivity:
     params:
         concept=concept,
         study_file=study_file,
-        settings=settings("seed", "data", "sensitivity"),
+        settings=settings("sensitivity"),
     log:
         "results/{study}/logs/sensitivity.log",
     benchmark:
@@ -235,7 +209,7 @@ rule identifiability:
     params:
         concept=concept,
         study_file=study_file,
-        settings=settings("data", "identify", "identifiability"),
+        settings=settings("identifiability"),
     log:
         "results/{study}/logs/identifiability.log",
     benchmark:
@@ -246,7 +220,7 @@ rule identifiability:
         runtime=60,
     shell:
         "ema-uq identifiability {input.estimation} --concept {params.concept} --init {input.fit} "
-        "--study {params.study_file} --quiet --out {output} > {log} 2>&1"
+        "--study {params.study_file} --out {output} > {log} 2>&1"
 
 
 rule gap:
@@ -258,8 +232,8 @@ rule gap:
         ledger=report("results/{study}/gap_ledger.png", caption="report/gap_ledger.rst", category="Gap"),
     params:
         concept=concept,
-        candidates=lambda w: option("--candidates", study(w)["gap"].get("candidates")),
-        channels=lambda w: option("--channels", study(w)["data"].get("channels")),
+        study_file=study_file,
+        settings=settings("gap"),
     log:
         "results/{study}/logs/gap.log",
     benchmark:
@@ -269,17 +243,16 @@ rule gap:
         mem_mb=3000,
         runtime=30,
     shell:
-        "ema-uq gap {input.estimation} --concept {params.concept} --validate {input.validation} "
-        "{params.candidates} {params.channels} --figure {output.ledger} --quiet --out {output.result} > {log} 2>&1"
+        "ema-uq gap {input.estimation} --concept {params.concept} --study {params.study_file} "
+        "--validate {input.validation} --figure {output.ledger} --out {output.result} > {log} 2>&1"
 
 
 rule gap_selfcheck:
     output:
         "results/{study}/selfcheck.json",
     params:
-        concept=concept,
-        quick=lambda w: "--quick" if study(w)["gap"]["selfcheck"] == "quick" else "",
-        seed=lambda w: study(w)["seed"],
+        study_file=study_file,
+        settings=settings("gap-selfcheck"),
     log:
         "results/{study}/logs/gap_selfcheck.log",
     benchmark:
@@ -289,8 +262,7 @@ rule gap_selfcheck:
         mem_mb=3000,
         runtime=120,
     shell:
-        "ema-uq gap-selfcheck --concepts {params.concept} {params.quick} --seed {params.seed} --quiet "
-        "--out {output} > {log} 2>&1"
+        "ema-uq gap-selfcheck --study {params.study_file} --out {output} > {log} 2>&1"
 
 
 rule report:

@@ -83,7 +83,13 @@ def _add_seed(parser: argparse.ArgumentParser, default: int = 0) -> None:
 
 def _add_set(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
-                        help="override an estimated parameter or a design constant (SI units); repeatable")
+                        help="override an estimated parameter or a design constant (SI units); repeatable; "
+                             "laid over the study's data.set")
+
+
+def _add_study(parser: argparse.ArgumentParser, what: str, required: bool = False) -> None:
+    parser.add_argument("--study", required=required, default=None, metavar="STUDY.yaml",
+                        help=f"take {what} from this study (options given here override it)")
 
 
 def _model_vectors(model, assignments: Sequence[str]):
@@ -150,6 +156,7 @@ def _resolve_effects(model, specs: Sequence[str]):
 # --------------------------------------------------------------------------------------
 def _add_simulate(subparsers) -> None:
     from .experiments import EXPERIMENTS
+    from .study import DATA_ROLES
 
     p = subparsers.add_parser(
         "simulate", help="simulate a reference experiment and write noisy measurement data",
@@ -157,7 +164,11 @@ def _add_simulate(subparsers) -> None:
                     "and write the outputs plus Gaussian white noise (fraction of each channel's RMS) "
                     "to a NetCDF (.nc) or CSV (.csv) file.")
     _add_concept(p)
-    p.add_argument("--experiment", required=True, choices=tuple(EXPERIMENTS), help="input profile")
+    _add_study(p, "experiment, noise, seed, data.set, channels and (rig roles) hidden effects of a data role")
+    p.add_argument("--role", choices=tuple(DATA_ROLES), default=None,
+                   help="with --study: which of the study's records to write")
+    p.add_argument("--experiment", choices=tuple(EXPERIMENTS), default=None,
+                   help="input profile (required without --study)")
     p.add_argument("--noise", type=_fraction, default=0.02, metavar="FRACTION",
                    help="noise standard deviation as a fraction of each channel's RMS (default 0.02)")
     _add_seed(p)
@@ -177,6 +188,8 @@ def _run_simulate(args: argparse.Namespace) -> str:
     from .experiments import get_experiment, synthesize
     from .models import get_model
 
+    if args.experiment is None:
+        raise CLIError("give --experiment, or --study with --role")
     model, effects = _resolve_effects(get_model(args.concept), args.effect)
     theta, constants = _model_vectors(model, args.set)  # --set also reaches effect parameters
     channels = _names(args.channels)
@@ -237,6 +250,7 @@ def _add_identify(subparsers) -> None:
                     "and the iteration history to FIT.json.")
     _add_data(p)
     _add_concept(p)
+    _add_study(p, "seed, start perturbation, iteration cap, fixed parameters, channels and data.set")
     p.add_argument("--method", choices=("gn", "lm"), default="gn",
                    help="gn: Gauss-Newton with step halving; lm: Levenberg-Marquardt (default gn)")
     p.add_argument("--start", default="nominal", metavar="nominal|FIT.json",
@@ -278,12 +292,38 @@ def _run_identify(args: argparse.Namespace) -> str:
     out = fit.to_json()
     out["validation"] = [validate(fit.estimate, m, channels=problem.channels, constants=constants).to_json()
                          for m in validation_data]
+    if model.name == "emps":  # the report's table beside the published identification
+        from .emps_report import emps_comparison
+
+        out["published_comparison"] = emps_comparison(fit, measurements[0], next(iter(validation_data), None)).to_json()
     io.write_json(args.out, out)
+    _write_fit_outputs(args.out, model, fit.estimate, problem.channels, constants,
+                       [("estimation", m) for m in measurements] + [("validation", m) for m in validation_data])
     worst = min((c["fit_percent"] for v in out["validation"] for c in v["channels"].values()), default=None)
     tail = f", validation worst-channel fit {worst:.1f} %" if worst is not None else ""
     return (f"wrote {args.out}: {model.name} {args.method.upper()} "
             f"{'converged' if fit.converged else 'NOT converged'} in {fit.iterations} iterations, "
             f"{fit.n_simulations} simulations, {fit.wall_time_s:.1f} s{tail}")
+
+
+def _write_fit_outputs(fit_json: str, model, theta, channels, constants, records) -> None:
+    """Measured and predicted outputs of every (role, measurement) record beside FIT.json, so the
+    report draws the fit without simulating (:mod:`ema_uq.report.outputs`)."""
+    from .report.outputs import fit_outputs_path, write_fit_outputs
+    from .simulate import simulate_batch
+
+    rows = []
+    for role, m in records:
+        names = [c for c in m.channels if c in channels]
+        if model.name == "emps":  # EMPS records carry their own gains and start
+            from .models.emps import constants_for
+
+            constants = constants_for(m)
+        predicted = simulate_batch(model, theta, m.time, m.experiment.input_matrix(model), constants=constants)
+        rows.append({"role": role, "experiment": m.experiment.name, "channels": names,
+                     "units": [model.unit_of(c) for c in names], "time": m.time,
+                     "measured": m.select(names).values, "predicted": predicted[:, model.output_index(names)]})
+    write_fit_outputs(fit_outputs_path(fit_json), rows)
 
 
 def _add_sample(subparsers) -> None:
@@ -297,7 +337,9 @@ def _add_sample(subparsers) -> None:
     _add_concept(p)
     p.add_argument("--init", required=True, metavar="FIT.json", help="ML fit of the same concept (ema-uq identify)")
     p.add_argument("--out", required=True, metavar="POSTERIOR.nc")
+    _add_study(p, "seed, sampler budgets, moves, integrator and data.set")
     _add_seed(p)
+    _add_set(p)
     p.add_argument("--walkers", type=int, default=None, metavar="N",
                    help="walkers per ensemble (default 16 for --moves independence, else "
                         "max(2 x free parameters, 16))")
@@ -357,9 +399,11 @@ def _run_sample(args: argparse.Namespace) -> str:
         priors[name] = (kind, a, b)
     fit = _read_fit(args.init, args.concept)
     model = get_model(args.concept)
-    parameters = model.parameters.freeing_only(fit.free_names)
+    # the data's truth and constants: the rig priors centre on it, the likelihood simulates with it
+    theta, constants = _model_vectors(model, args.set)
+    parameters = model.parameters.with_nominal(model.parameters.as_dict(theta)).freeing_only(fit.free_names)
     measurements = _read_all(args.data, args.concept)
-    problem = FitProblem(measurements, parameters=parameters, channels=fit.channels or None)
+    problem = FitProblem(measurements, parameters=parameters, channels=fit.channels or None, constants=constants)
     settings = SamplerSettings(n_walkers=args.walkers, n_ensembles=args.chains, max_steps=args.max_steps,
                                check_every=args.check_every, spread=args.spread, moves=args.moves,
                                n_predictive=args.predictive, defensive_weight=args.defensive,
@@ -427,6 +471,7 @@ def _run_sensitivity(args: argparse.Namespace) -> str:
     from . import io
     from . import sensitivity as sobol
     from .provenance import provenance
+    from .study import settings_for
 
     study = _load_study_for(args.study, args.concept)
     out = Path(args.out)
@@ -435,7 +480,8 @@ def _run_sensitivity(args: argparse.Namespace) -> str:
     if args.chunk is None and out.suffix != ".json":
         raise CLIError(f"--out {out}: Sobol indices are written as JSON; give e.g. sobol.json")
     io.prepare_output(out)
-    setup = sobol.setup_from_study(study, n_base=args.n_base)
+    design = settings_for(study, "sensitivity")["design"]
+    setup = sobol.setup_from_study({"concept": study["concept"], **design}, n_base=args.n_base)
     if args.chunk is not None:
         index, total = args.chunk
         chunk = sobol.evaluate_chunk(setup, setup.design(), index, total)
@@ -468,15 +514,24 @@ def _add_identifiability(subparsers) -> None:
     _add_concept(p)
     p.add_argument("--init", required=True, metavar="FIT.json", help="ML fit of the same concept (ema-uq identify)")
     p.add_argument("--out", required=True, metavar="IDENT.json")
-    p.add_argument("--study", default=None, metavar="STUDY.yaml",
-                   help="take sensor sets, profile budgets and design constants from the study")
+    _add_study(p, "sensor sets, profile settings and data.set (its design constants)")
+    _add_set(p)
     p.add_argument("--sensor-sets", nargs="+", default=None, choices=("full", "realistic"), metavar="SET",
                    help="built-in sensor sets to assess: full, realistic (default: the study's, else both)")
     p.add_argument("--channels", nargs="+", default=None, metavar="NAME",
                    help="assess this one custom channel set instead")
     p.add_argument("--profile", nargs="+", default=None, metavar="NAME",
                    help="parameters to profile (default: every free B_* and C_*)")
-    p.add_argument("--profile-points", type=int, default=None, metavar="N", help="grid points per profile")
+    p.add_argument("--profile-points", type=int, default=9, metavar="N", help="grid points per profile (default 9)")
+    p.add_argument("--profile-sigmas", type=float, default=4.0, metavar="K",
+                   help="profile half-span in Cramér-Rao standard deviations (default 4)")
+    p.add_argument("--profile-span", type=float, default=0.5, metavar="FRACTION",
+                   help="relative half-span used instead when narrower or without a Cramér-Rao bound (default 0.5)")
+    p.add_argument("--max-relative-width", type=float, default=1.0, metavar="FRACTION",
+                   help="a closed 95 %% profile interval wider than this fraction of the estimate is practically "
+                        "non-identifiable (default 1)")
+    p.add_argument("--collinearity-threshold", type=float, default=20.0, metavar="GAMMA",
+                   help="Brun collinearity index above which a subset is non-identifiable (default 20)")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     p.set_defaults(handler=_run_identifiability)
 
@@ -486,24 +541,16 @@ def _run_identifiability(args: argparse.Namespace) -> str:
     from . import identifiability as ident
     from .models import get_model
     from .provenance import provenance
-    from .study import section
 
     model = get_model(args.concept)
-    study = _load_study_for(args.study, args.concept) if args.study else {}
-    options = section(study, "identifiability")
-    if args.profile_points is not None:
-        if args.profile_points < 3:
-            raise CLIError(f"--profile-points {args.profile_points}: give at least 3")
-        options["profile_points"] = args.profile_points
-    settings = ident.ProfileSettings.from_section(options)
+    if args.profile_points < 3:
+        raise CLIError(f"--profile-points {args.profile_points}: give at least 3")
+    settings = ident.ProfileSettings.from_section(vars(args))
     if args.channels:
         sets = [{"name": "custom", "channels": _names(args.channels)}]
     else:
-        sets = args.sensor_sets or options["sensor_sets"]
-    constants = None
-    if study:
-        _, consts = model.split_assignments(dict(section(study, "data").get("set") or {}))
-        constants = model.constants_vector(consts)
+        sets = args.sensor_sets or ["full", "realistic"]
+    _, constants = _model_vectors(model, args.set)  # the fit holds the parameters; the data's constants
     io.prepare_output(args.out)
     fit = _read_fit(args.init, args.concept)
     measurements = _read_all(args.data, args.concept)
@@ -512,7 +559,7 @@ def _run_identifiability(args: argparse.Namespace) -> str:
         print(f"{PROG} identifiability: {line}", file=sys.stderr, flush=True)
 
     result = ident.sensor_set_study(measurements, fit.estimate, fit.free_names, sets, settings=settings,
-                                    profile_names=_names(args.profile) or options["profile_parameters"],
+                                    profile_names=_names(args.profile),
                                     constants=constants, progress=None if args.quiet else progress)
     result.data = list(args.data)
     result.provenance = provenance([*args.data, args.init], settings={k: v for k, v in vars(args).items()
@@ -536,6 +583,8 @@ def _add_gap(subparsers) -> None:
                     "last --holdout fraction of each DATA record.")
     _add_data(p)
     _add_concept(p)
+    _add_study(p, "candidate effects, channels and data.set (its design constants)")
+    _add_set(p)
     p.add_argument("--validate", nargs="+", default=[], metavar="DATA",
                    help="held-out data of the same concept (default: hold out the end of each DATA record)")
     p.add_argument("--holdout", type=_fraction, default=0.3, metavar="FRACTION",
@@ -628,6 +677,7 @@ def _add_gap_selfcheck(subparsers) -> None:
                     "both concepts, no-effect cases with perturbed parameters, effects outside the catalogue), "
                     "diagnose each without its label and score the diagnosis: confusion matrix, top-1 "
                     "accuracy, false alarm rate, median shrink. --quick runs 4 HT/LS cases.")
+    _add_study(p, "seed, concept and set size (gap.selfcheck)")
     p.add_argument("--quick", action="store_true", help="4 HT/LS cases instead of the full set")
     p.add_argument("--concepts", nargs="+", default=["htls", "lths"], metavar="C",
                    help="concepts of the full set (default htls lths)")
@@ -741,11 +791,45 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _given_options(argv: Sequence[str] | None) -> set[str]:
+    """Destinations of the options given on the command line: a second parse in which no
+    option of any verb has a default, so only the given ones appear."""
+    parser = build_parser()
+    verbs = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    for verb_parser in verbs.choices.values():
+        for action in verb_parser._actions:
+            action.default = argparse.SUPPRESS
+    return set(vars(parser.parse_args(argv))) - {"handler", "verb"}
+
+
+def _apply_study(args: argparse.Namespace, given: set[str]) -> None:
+    """Lay the study's settings of this verb (:func:`ema_uq.study.settings_for`, the one route
+    from a study to a stage) under the options given on the command line; ``--set`` items are
+    laid over the study's ``data.set`` name by name."""
+    from .study import STUDY_VERBS, load_study, settings_for
+
+    if getattr(args, "role", None) and not args.study:
+        raise CLIError("--role picks one of a study's records: give --study STUDY.yaml with it")
+    if args.verb not in STUDY_VERBS or not args.study:
+        return
+    study = load_study(args.study)
+    concept = getattr(args, "concept", None)
+    if concept is not None and study["concept"] != concept:
+        raise CLIError(f"{args.study} is a study of concept {study['concept']}, but --concept {concept} was "
+                       "given; use the study of the same concept")
+    for dest, value in settings_for(study, args.verb, role=getattr(args, "role", None)).items():
+        if dest == "set":
+            args.set = [f"{name}={number!r}" for name, number in value.items()] + list(args.set)
+        elif hasattr(args, dest) and dest not in given:
+            setattr(args, dest, value)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run one verb; returns the exit status (0 success, 2 bad input)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        _apply_study(args, _given_options(argv))
         summary = args.handler(args)
     except (ValueError, OSError) as exc:
         if args.traceback:

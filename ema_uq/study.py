@@ -139,3 +139,71 @@ def load_study(path: str | Path) -> dict[str, Any]:
     if not isinstance(raw, dict):
         raise StudyError(f"{path}: a study must be a mapping of keys to values")
     return validate_study(raw, source=str(path))
+
+
+# --------------------------------------------------------------------------------------
+# settings of each command-line verb: the one route from a study to a stage
+# --------------------------------------------------------------------------------------
+#: Data roles of a synthetic study and the offset of each one's noise seed from the study
+#: seed: estimation, validation and the rig-like records (which carry ``gap.rig_effects``)
+#: must be independent noise draws.
+DATA_ROLES = {"estimation": 0, "validation": 1000, "rig_estimation": 2000, "rig_validation": 3000}
+
+
+def _simulate_settings(study: dict, role: str | None) -> dict[str, Any]:
+    if role not in DATA_ROLES:
+        raise StudyError(f"simulate from a study needs a data role, one of {', '.join(DATA_ROLES)}; "
+                         f"got {role!r}")
+    data = section(study, "data")
+    return {"experiment": data[role.removeprefix("rig_")], "noise": data["noise"],
+            "seed": study.get("seed", 1) + DATA_ROLES[role], "set": dict(data.get("set") or {}),
+            "channels": data.get("channels"),
+            # the rig-like records carry the study's hidden effects; the data file does not name them
+            "effect": list(section(study, "gap")["rig_effects"]) if role.startswith("rig_") else []}
+
+
+def settings_for(study: dict[str, Any], verb: str, *, role: str | None = None) -> dict[str, Any]:
+    """Everything the command-line ``verb`` takes from ``study``, with the schema's defaults.
+
+    Keys are the verb's option destinations (``--max-iterations`` -> ``max_iterations``), so
+    the CLI lays them under the options given on its command line; ``set`` is the study's
+    ``data.set`` ({name: value}: the simulated truth and the design constants, which every
+    stage that simulates the study's data must share). ``role`` (verb ``simulate`` only) is
+    one of :data:`DATA_ROLES`. Sensitivity's ``design`` is the part of the study that defines
+    the Sobol design (:func:`ema_uq.sensitivity.setup_from_study`). The workflow re-runs a
+    stage exactly when this value changes.
+    """
+    seed = study.get("seed", 1)
+    data = section(study, "data")
+    overrides = dict(data.get("set") or {})
+    if verb == "simulate":
+        return _simulate_settings(study, role)
+    if verb == "identify":
+        ident = section(study, "identify")
+        return {"seed": seed, "perturb": ident["perturb"], "max_iterations": ident["max_iterations"],
+                "fix": list(ident.get("fix") or []), "channels": data.get("channels"), "set": overrides}
+    if verb == "sample":
+        s = section(study, "sample")
+        return {"seed": seed, "walkers": s["walkers"], "chains": s["ensembles"], "max_steps": s["max_steps"],
+                "check_every": s["check_every"], "moves": s["moves"], "defensive": s["defensive"],
+                "integrator": s["integrator"], "set": overrides}
+    if verb == "sensitivity":
+        sens = section(study, "sensitivity")
+        return {"n_base": sens["n_base"], "design": {"seed": seed, "data": data, "sensitivity": sens}}
+    if verb == "identifiability":
+        ident = section(study, "identifiability")
+        return {"sensor_sets": ident["sensor_sets"], "profile": ident["profile_parameters"],
+                **{k: ident[k] for k in ("profile_points", "profile_sigmas", "profile_span", "max_relative_width",
+                                         "collinearity_threshold")},
+                "set": overrides}
+    if verb == "gap":
+        return {"candidates": section(study, "gap")["candidates"], "channels": data.get("channels"),
+                "set": overrides}
+    if verb == "gap-selfcheck":
+        return {"seed": seed, "quick": section(study, "gap")["selfcheck"] == "quick",
+                "concepts": [study["concept"]]}
+    raise StudyError(f"verb {verb!r} takes no settings from a study; these do: {', '.join(STUDY_VERBS)}")
+
+
+#: Verbs that take ``--study STUDY.yaml`` and read their settings through :func:`settings_for`.
+STUDY_VERBS = ("simulate", "identify", "sample", "sensitivity", "identifiability", "gap", "gap-selfcheck")

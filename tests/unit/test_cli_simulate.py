@@ -110,3 +110,85 @@ def test_simulate_unwritable_out(tmp_path):
 
 def test_no_verb_is_a_one_line_error():
     assert_one_line_error(run_cli(), "required", "simulate")
+
+
+# --------------------------------------------------------------------------------------
+# study settings: one route (--study + ema_uq.study.settings_for), options override it
+# --------------------------------------------------------------------------------------
+STUDY = {"name": "t", "concept": "htls", "seed": 5,
+         "data": {"noise": 0.01, "set": {"J": 0.06, "k_y": 1.1}, "channels": ["Omega", "y1"]},
+         "identify": {"methods": ["gn"], "perturb": 0.1, "max_iterations": 7, "fix": ["J"]},
+         "sample": {"ensembles": 3, "integrator": "hybrid"},
+         "identifiability": {"profile_points": 5},
+         "gap": {"rig_effects": ["backlash"], "candidates": ["backlash"], "selfcheck": "quick"}}
+
+
+@pytest.fixture()
+def study_file(tmp_path):
+    import yaml
+
+    path = tmp_path / "t.yaml"
+    path.write_text(yaml.safe_dump(STUDY))
+    return path
+
+
+def parsed(*argv):
+    from ema_uq.cli import _apply_study, _given_options, build_parser
+
+    args = build_parser().parse_args(list(map(str, argv)))
+    _apply_study(args, _given_options(list(map(str, argv))))
+    return args
+
+
+def test_every_study_verb_takes_its_settings_from_the_study_and_data_set_reaches_it(study_file):
+    from ema_uq.study import STUDY_VERBS, load_study, settings_for
+
+    study = load_study(study_file)
+    assert settings_for(study, "simulate", role="rig_validation") == {
+        "experiment": "validation", "noise": 0.01, "seed": 3005, "set": {"J": 0.06, "k_y": 1.1},
+        "channels": ["Omega", "y1"], "effect": ["backlash"]}
+    assert settings_for(study, "simulate", role="estimation")["effect"] == []
+    for verb in ("identify", "sample", "identifiability", "gap"):
+        assert settings_for(study, verb)["set"] == {"J": 0.06, "k_y": 1.1}, verb
+    assert set(STUDY_VERBS) >= {"simulate", "identify", "sample", "sensitivity", "identifiability", "gap",
+                                "gap-selfcheck"}
+    a = parsed("identify", "d.nc", "--concept", "htls", "--study", study_file, "--out", "f.json")
+    assert (a.seed, a.perturb, a.max_iterations, a.fix, a.channels) == (5, 0.1, 7, ["J"], ["Omega", "y1"])
+    assert a.set == ["J=0.06", "k_y=1.1"]
+    s = parsed("sample", "d.nc", "--concept", "htls", "--study", study_file, "--init", "f.json", "--out", "p.nc")
+    assert (s.chains, s.integrator, s.max_steps, s.set) == (3, "hybrid", 20000, ["J=0.06", "k_y=1.1"])
+    g = parsed("gap", "d.nc", "--concept", "htls", "--study", study_file, "--out", "g.json")
+    assert (g.candidates, g.channels, g.set) == (["backlash"], ["Omega", "y1"], ["J=0.06", "k_y=1.1"])
+    i = parsed("identifiability", "d.nc", "--concept", "htls", "--study", study_file, "--init", "f.json",
+               "--out", "i.json")
+    assert (i.profile_points, i.profile_sigmas, i.sensor_sets) == (5, 4.0, ["full", "realistic"])
+    c = parsed("gap-selfcheck", "--study", study_file, "--out", "s.json")
+    assert (c.seed, c.quick, c.concepts) == (5, True, ["htls"])
+
+
+def test_options_on_the_command_line_override_the_study(study_file):
+    a = parsed("identify", "d.nc", "--concept", "htls", "--study", study_file, "--perturb", "0", "--seed", "0",
+               "--set", "J=0.07", "--out", "f.json")
+    assert (a.perturb, a.seed, a.max_iterations) == (0.0, 0, 7)
+    assert a.set == ["J=0.06", "k_y=1.1", "J=0.07"]  # the later item wins, name by name
+    i = parsed("identifiability", "d.nc", "--concept", "htls", "--study", study_file, "--init", "f.json",
+               "--profile-points", "9", "--out", "i.json")
+    assert i.profile_points == 9
+    plain = parsed("identify", "d.nc", "--concept", "htls", "--out", "f.json")
+    assert (plain.perturb, plain.seed, plain.set) == (0.0, 0, [])  # no study: the verb's own defaults
+
+
+def test_simulate_from_a_study_role_equals_the_explicit_options(study_file, tmp_path):
+    by_study = run_cli("simulate", "--concept", "htls", "--study", study_file, "--role", "rig_estimation",
+                       "--out", tmp_path / "a.nc")
+    assert by_study.returncode == 0, by_study.stderr
+    explicit = run_cli(*SIMULATE, "--noise", "0.01", "--seed", "2005", "--set", "J=0.06", "--set", "k_y=1.1",
+                       "--channels", "Omega", "y1", "--effect", "backlash", "--out", tmp_path / "b.nc")
+    assert explicit.returncode == 0, explicit.stderr
+    a, b = io.read_measurement(tmp_path / "a.nc"), io.read_measurement(tmp_path / "b.nc")
+    assert a.channels == b.channels == ("Omega", "y1") and np.array_equal(a.values, b.values)
+    assert_one_line_error(run_cli("simulate", "--concept", "htls", "--role", "estimation", "--out", tmp_path / "c.nc"),
+                          "--study")
+    assert_one_line_error(run_cli("simulate", "--concept", "lths", "--study", study_file, "--role", "estimation",
+                                  "--out", tmp_path / "c.nc"), "concept htls")
+    assert_one_line_error(run_cli("simulate", "--concept", "htls", "--out", tmp_path / "c.nc"), "--experiment")
