@@ -16,8 +16,8 @@ import numpy as np
 from .. import io
 from ..models import get_model
 from ..provenance import file_sha256, settings_hash
-from ..simulate import simulate_batch
 from . import figures
+from .outputs import fit_outputs_path, read_fit_outputs
 
 TEMPLATE = "report/templates/report.html"
 
@@ -44,29 +44,6 @@ def _img(fig, alt: str) -> str:
 
 
 SYNTHETIC_CONCEPTS = ("htls", "lths")
-
-
-def _records(study: dict, results: Path) -> dict:
-    """The study's estimation and validation measurements: the workflow's simulated files, or
-    for EMPS the benchmark's own files (never copied into the results)."""
-    if study["concept"] == "emps":
-        try:
-            files = io.emps_files(study)
-        except io.DataFileError:
-            return {}
-    else:
-        files = {role: results / "data" / f"{role}.nc" for role in ("estimation", "validation")}
-    return {role: io.read_measurement(path, concept=study["concept"]) for role, path in files.items()
-            if Path(path).exists()}
-
-
-def _record_constants(model, measurement):
-    """Design constants a record is simulated with: EMPS records carry their gains and start."""
-    if model.name == "emps":
-        from ..models.emps import constants_for
-
-        return constants_for(measurement)
-    return None
 
 
 def _identification_section(study: dict, results: Path) -> tuple[str, dict]:
@@ -108,18 +85,22 @@ def _identification_section(study: dict, results: Path) -> tuple[str, dict]:
             parts.append(f'<p class="flag">{k}: {html.escape(w)}</p>')
 
     parts.append("<h3>Measured vs identified model (paper Fig. 2/3)</h3>")
-    for role, meas in _records(study, results).items():
-        channels = [c for c in meas.channels if c in next(iter(fits.values()))["channels"]][:8]
-        idx = model.output_index(channels)
-        preds = {}
-        for k, f in fits.items():
-            theta = np.array([f["parameters"][n]["estimate"] for n in names])
-            preds[k] = simulate_batch(model, theta, meas.time, meas.experiment.input_matrix(model),
-                                      constants=_record_constants(model, meas))[:, idx]
-        fig = figures.fit_comparison(meas.time, meas.select(channels).values, preds, channels,
-                                     [model.unit_of(c) for c in channels],
-                                     title=f"{model.title}: {role} data ({meas.experiment.name})")
-        parts.append(_img(fig, f"{role} comparison"))
+    outputs = {k: read_fit_outputs(fit_outputs_path(results / f"fit_{k.lower()}.json")) for k in fits
+               if fit_outputs_path(results / f"fit_{k.lower()}.json").exists()}
+    if not outputs:
+        parts.append('<p class="muted">No predicted outputs beside the fits (FIT.outputs.npz); rerun identify.</p>')
+    first = next(iter(outputs.values()), [])
+    seen = set()
+    for i, record in enumerate(first):
+        if record["role"] in seen:  # one figure per role, as the workflow has one record of each
+            continue
+        seen.add(record["role"])
+        channels = record["channels"][:8]
+        preds = {k: recs[i]["predicted"][:, :len(channels)] for k, recs in outputs.items()}
+        fig = figures.fit_comparison(record["time"], record["measured"][:, :len(channels)], preds, channels,
+                                     record["units"][:8],
+                                     title=f"{model.title}: {record['role']} data ({record['experiment']})")
+        parts.append(_img(fig, f"{record['role']} comparison"))
     parts.append("<h3>Convergence</h3>")
     parts.append(_img(figures.convergence({k: f["history"] for k, f in fits.items()}), "convergence"))
 
@@ -127,7 +108,7 @@ def _identification_section(study: dict, results: Path) -> tuple[str, dict]:
     for k, f in fits.items():
         for v in f.get("validation", []):
             for ch, c in v["channels"].items():
-                val_rows.append([k, ch, f"{c['fit_percent']:.2f}", f"{c['nrmse']:.4f}",
+                val_rows.append([k, ch, _fmt(c["fit_percent"], 4), _fmt(c["nrmse"], 4),
                                  _fmt(c["ljung_box_p"], 3), "yes" if c["white"] else '<span class="flag">no</span>',
                                  "yes" if c["independent_of_inputs"] else '<span class="flag">no</span>'])
     if val_rows:
@@ -150,6 +131,7 @@ def _posterior_section(study: dict, results: Path) -> str:
         return '<p class="muted">Posterior not sampled.</p>'
     post = PosteriorResult.from_netcdf(path)
     model = get_model(study["concept"])
+    synthetic = model.name in SYNTHETIC_CONCEPTS  # measured data have no truth
     truth = dict(zip(model.parameters.names, model.parameters.vector(study["data"].get("set", {}))))
     table = post.summary()
     hdi_lo, hdi_hi = [c for c in table.columns if c.startswith("hdi_")][:2]
@@ -160,7 +142,8 @@ def _posterior_section(study: dict, results: Path) -> str:
         if not ok:
             flagged.append(name)
         ratio = r["sd"] / r["crb_sd"] if r["crb_sd"] > 0 else np.nan
-        rows.append([name, _fmt(truth.get(name)), f"{_fmt(r['ml'], 6)} ± {_fmt(r['crb_sd'], 3)}",
+        rows.append([name] + ([_fmt(truth.get(name))] if synthetic else []) + [
+                     f"{_fmt(r['ml'], 6)} ± {_fmt(r['crb_sd'], 3)}",
                      f"{_fmt(r['mean'], 6)} ± {_fmt(r['sd'], 3)}", f"[{_fmt(r[hdi_lo], 6)}, {_fmt(r[hdi_hi], 6)}]",
                      _fmt(ratio, 3), _fmt(r["r_hat"], 4), f"{r['ess_bulk']:.0f}", f"{r['ess_tail']:.0f}",
                      _fmt(r["mcse_mean"], 2)])
@@ -174,8 +157,9 @@ def _posterior_section(study: dict, results: Path) -> str:
              f"likelihood: {html.escape(str(a.get('likelihood', '')))}, simulated with "
              f"{html.escape(str(a.get('integrator', 'the model integrator')))}.")
     parts = [f"<p>emcee started from the ML estimate. {facts}</p>",
-             _table(["parameter", "truth", "ML ± CRB σ", "posterior mean ± sd", "90 % HDI", "sd / CRB σ",
-                     "R-hat", "bulk ESS", "tail ESS", "MCSE mean"], rows)]
+             _table(["parameter"] + (["truth"] if synthetic else []) + [
+                 "ML ± CRB σ", "posterior mean ± sd", "90 % HDI", "sd / CRB σ", "R-hat", "bulk ESS", "tail ESS",
+                 "MCSE mean"], rows)]
     if flagged:
         parts.append(f'<p class="flag">R-hat ≥ 1.01 or bulk ESS &lt; 400: {html.escape(", ".join(flagged))}</p>')
     parts += ["<h3>Traces</h3>", _img(bayes_figures.trace(post), "trace plots"),
@@ -316,9 +300,9 @@ def _gap_section(study: dict, results: Path) -> str:
               _table(["effect", "score", "gap before", "gap after", "shrink"] + [k.replace("_", " ") for k in extra], rows)]
     params = gap.get("effect_parameters") or {}
     if params:
-        prow = [[html.escape(k), _fmt(v.get("estimate"), 5), _fmt(v.get("std"), 3), html.escape(str(v.get("unit", "")))]
-                for k, v in params.items()]
-        parts += ["<h3>Estimated effect parameters</h3>", _table(["parameter", "estimate", "CRB σ", "unit"], prow)]
+        prow = [[html.escape(k), f"{_fmt(v.get('estimate'), 5)} ± {_fmt(v.get('std'), 3)}",
+                 html.escape(str(v.get("unit", "")))] for k, v in params.items()]
+        parts += ["<h3>Estimated effect parameters</h3>", _table(["parameter", "estimate ± CRB σ", "unit"], prow)]
     if gap.get("selected"):
         parts.append(f"<p>Effects kept by forward selection: {html.escape(' + '.join(gap['selected']))}.</p>")
     ledger = results / "gap_ledger.png"
@@ -358,28 +342,95 @@ def _selfcheck_section(results: Path) -> str:
             + "<h3>Cases</h3>" + _table(["case", "truth", "magnitude", "verdict", "shrink"], cases))
 
 
-def _emps_section(study: dict, results: Path) -> str:
-    """EMPS: ML beside the published IDIM-LS values and simulation errors next to the published figures."""
-    from ..emps_report import emps_comparison
-    from ..identify import FitResult
+def _read(results: Path, name: str) -> dict | None:
+    return io.read_json(results / name) if (results / name).exists() else None
 
+
+def _estimate_findings(study: dict, results: Path, fits: dict) -> list[str]:
+    """Per fit: the largest |estimate - truth| / CRB σ (synthetic data) or |ML - published| / σ
+    (EMPS, the published IDIM-LS values)."""
+    model = get_model(study["concept"])
+    items = []
+    if model.name in SYNTHETIC_CONCEPTS:
+        truth = dict(zip(model.parameters.names, model.parameters.vector(study["data"].get("set", {}))))
+        for k, f in fits.items():
+            z = {n: abs(p["estimate"] - truth[n]) / p["std"] for n, p in f["parameters"].items()
+                 if n in truth and p.get("std") and np.isfinite(p["std"]) and p["std"] > 0}
+            if z:
+                worst = max(z, key=z.get)
+                state = "converged" if f["converged"] else '<span class="flag">not converged</span>'
+                items.append(f"{k} estimates vs truth: max |error|/CRB σ = {_fmt(z[worst], 3)} "
+                             f"({html.escape(worst)}), {state}.")
+        return items
+    comp = (fits.get("GN") or {}).get("published_comparison")
+    if comp:
+        z = {r["parameter"]: abs(r["z"]) for r in comp["parameters"] if r["z"] is not None and np.isfinite(r["z"])}
+        diff = {r["parameter"]: abs(r["difference_percent"]) for r in comp["parameters"]}
+        worst = max(diff, key=diff.get)
+        items.append(f"GN estimates vs published {html.escape(comp['reference'])}: max |difference| "
+                     f"{_fmt(diff[worst], 3)} % ({html.escape(worst)})"
+                     + (f", max |difference|/σ = {_fmt(max(z.values()), 3)} ({html.escape(max(z, key=z.get))})"
+                        if z else ""))
+    return items
+
+
+def _summary_section(study: dict, results: Path, fits: dict) -> str:
+    """The findings of every stage in a few lines: verdicts, estimates, convergence, Sobol."""
+    items = []
+    gap = _read(results, "gap.json")
+    if gap:
+        what = {"effect": f"effect <b>{html.escape(str(gap.get('effect')))}</b>", "none": "no significant gap",
+                "unexplained": "unexplained gap"}.get(gap["verdict"], html.escape(str(gap["verdict"])))
+        conf = f", {html.escape(str(gap['confidence']))} confidence" if gap.get("confidence") else ""
+        params = "; ".join(f"{html.escape(n)} = {_fmt(v.get('estimate'), 4)} ± {_fmt(v.get('std'), 2)} "
+                           f"{html.escape(str(v.get('unit', '')))}" for n, v in (gap.get("effect_parameters") or {}).items())
+        items.append(f"Sim-to-real gap: {what}{conf}" + (f" ({params})" if params else "") + ".")
+    ident = _read(results, "ident.json")
+    if ident:
+        from ..identifiability import VERDICTS
+
+        for name, r in ident["sensor_sets"].items():
+            counts = [sum(t["verdict"] == v for t in r["parameters"].values()) for v in VERDICTS]
+            items.append(f"Identifiability, {html.escape(name)} sensors: {counts[0]} identifiable, {counts[1]} "
+                         f"practically and {counts[2]} structurally non-identifiable.")
+    items += _estimate_findings(study, results, fits)
+    if (results / "posterior.nc").exists():
+        from ..bayes import PosteriorResult
+
+        post = PosteriorResult.from_netcdf(results / "posterior.nc")
+        table = post.summary()
+        items.append(f"Posterior: max R-hat {_fmt(float(table['r_hat'].max()), 4)}, min bulk ESS "
+                     f"{float(table['ess_bulk'].min()):.0f}, converged "
+                     + ("yes" if post.converged else '<span class="flag">no</span>') + ".")
+    sobol = _read(results, "sobol.json")
+    if sobol and "cost" in sobol["qoi"]:
+        st = sobol["qoi"]["cost"]["ST"]
+        top = sorted(st, key=lambda n: -st[n])[:3]
+        items.append("Sobol, largest total indices of the det R cost: "
+                     + ", ".join(f"{html.escape(n)} {_fmt(st[n], 2)}" for n in top) + ".")
+    if not items:
+        return '<p class="muted">No stage has written results yet.</p>'
+    return "<ul>" + "".join(f"<li>{i}</li>" for i in items) + "</ul>"
+
+
+def _emps_section(study: dict, results: Path) -> str:
+    """EMPS: ML beside the published IDIM-LS values and simulation errors next to the published
+    figures, as ``ema-uq identify`` wrote them into FIT.json (``published_comparison``)."""
     path = results / "fit_gn.json"
-    records = _records(study, results)
-    if not path.exists() or not records:
-        return '<p class="muted">EMPS fit or data not available.</p>'
-    fit = FitResult.from_json(io.read_json(path))
-    comp = emps_comparison(fit, records.get("estimation"), records.get("validation"))
+    comp = io.read_json(path).get("published_comparison") if path.exists() else None
+    if not comp:
+        return '<p class="muted">EMPS fit (with its comparison to the published values) not available.</p>'
     rows = [[html.escape(r["parameter"]), html.escape(r["unit"]), f"{_fmt(r['ml'], 6)} ± {_fmt(r['ml_std'], 3)}",
              f"{_fmt(r['published'], 6)} ± {_fmt(r['published_std'], 3)}", _fmt(r["difference_percent"], 3),
-             _fmt(r["z"], 3)] for r in comp.parameters]
+             _fmt(r["z"], 3)] for r in comp["parameters"]]
     err_rows = []
-    for role, kinds in comp.errors.items():
+    for role, kinds in comp["errors"].items():
         for kind, e in kinds.items():
             err_rows.append([role, kind.replace("_", " ")] + [_fmt(e.get(k), 4) for k in
                                                               ("position", "velocity", "acceleration", "force")])
-    notes = "".join(f"<li>{html.escape(n)}</li>" for n in comp.notes)
-    return (f"<p>ML output error ({comp.method.upper()}, channels {html.escape(', '.join(comp.channels))}) beside the "
-            f"published {html.escape(comp.reference)} estimates (inverse dynamics, Janot, Gautier, Brunot 2019).</p>"
+    notes = "".join(f"<li>{html.escape(n)}</li>" for n in comp["notes"])
+    return (f"<p>ML output error ({comp['method'].upper()}, channels {html.escape(', '.join(comp['channels']))}) "
+            f"beside the published {html.escape(comp['reference'])} estimates (inverse dynamics, Janot, Gautier, Brunot 2019).</p>"
             + _table(["parameter", "unit", "ML ± CRB σ", "published ± σ", "difference %", "z"], rows, name_cols=2)
             + "<h3>Simulation errors [%] (benchmark definition: 100‖z − y‖/‖z‖)</h3>"
             + _table(["record", "model", "position", "velocity", "acceleration", "force"], err_rows, name_cols=2)
@@ -433,7 +484,8 @@ def build_report(study: dict, study_path: str | Path, results: str | Path) -> st
     """HTML text of the report for ``study`` from the result files in ``results``."""
     results, study_path = Path(results), Path(study_path)
     ident, fits = _identification_section(study, results)
-    sections = [("identification", "Maximum-likelihood identification", ident)]
+    sections = [("summary", "Summary of findings", _summary_section(study, results, fits)),
+                ("identification", "Maximum-likelihood identification", ident)]
     if study["concept"] == "emps":
         sections.append(("emps", "EMPS: ML vs the published identification", _emps_section(study, results)))
     sections.append(("posterior", "Bayesian posterior", _posterior_section(study, results)))
