@@ -168,6 +168,11 @@ def test_editing_the_report_template_reruns_only_the_report(smoke_run):
                              "sensitivity_chunk": 2, "sensitivity": 1, "report": 1}),
     ("sensitivity", "bootstrap", 30, {"sensitivity_chunk": 2, "sensitivity": 1, "report": 1}),
     ("gap", "candidates", ["sensor_delay", "backlash"], {"gap": 1, "report": 1}),
+    # data.set reaches every stage that simulates the study's data, not the self-check's own cases
+    ("data", "set", {"k_y": 0.45}, {"simulate": 4, "identify": 2, "sample": 1, "identifiability": 1, "gap": 1,
+                                    "sensitivity_chunk": 2, "sensitivity": 1, "report": 1}),
+    ("gap", "rig_effects", ["backlash"], {"simulate": 2, "gap": 1, "report": 1}),
+    ("gap", "selfcheck", "full", {"gap_selfcheck": 1, "report": 1}),
 ])
 def test_changed_study_value_reruns_exactly_the_affected_rules(smoke_run, tmp_path, section, key, value, expected):
     workdir = tmp_path / "wf"
