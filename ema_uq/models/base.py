@@ -18,7 +18,8 @@ from ..params import ParameterError, ParameterSet
 INPUTS = ("phi_r", "F_ER1", "F_ER2", "brake")
 REQUIRED_INPUTS = ("phi_r", "F_ER1", "F_ER2")
 INPUT_UNITS = {"phi_r": "rad", "F_ER1": "N", "F_ER2": "N", "brake": "1",
-               "qg": "m", "pulse": "V"}  # qg, pulse: EMPS (reference position, drive pulse)
+               "qg": "m", "pulse": "V",  # qg, pulse: EMPS (reference position, drive pulse)
+               "x_sp": "m", "F_load": "N"}  # x_sp, F_load: Cranfield (position set point, load force)
 
 #: The one table of compiled-kernel ids: concept -> (id of its nominal right-hand side, id of
 #: its right-hand side with the unmodelled effects of ``effect_kernels.py``, or None). The
@@ -31,6 +32,7 @@ KERNEL_IDS: dict[str, tuple[int, int | None]] = {
     "htls": (0, 100),
     "lths": (1, 101),
     "emps": (2, None),  # its own compiled simulator (Model.batch_simulator)
+    "cranfield": (3, None),  # its own compiled simulator (Model.batch_simulator)
 }
 
 
