@@ -38,6 +38,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 from scipy.stats import chi2
 
+from . import statistics
 from .experiments import Measurement
 from .identify import FitProblem, IdentificationError, Settings, covariance, estimate
 from .identify.estimators import FD_RELATIVE_STEP
@@ -361,13 +362,9 @@ class Profile:
 
 
 def _objective(problem: FitProblem, theta: np.ndarray, log_det_r: float) -> float:
-    """V = (N/2) log det R + ½ Σ ((θ - rig)/σ)² over every parameter with a rig value, free or
-    fixed, so that profiles with different free sets share one objective."""
-    prior = 0.0
-    for i, p in enumerate(problem.parameters):
-        if p.prior_std is not None:
-            prior += 0.5 * ((theta[i] - p.nominal) / p.prior_std) ** 2
-    return 0.5 * problem.n_samples * log_det_r + prior
+    """V at the full vector ``theta``, the rig term over every parameter with a rig value, free
+    or fixed, so that profiles with different free sets share one objective."""
+    return statistics.objective(problem.n_samples, log_det_r, theta, problem.parameters)
 
 
 def _fit(measurements, model, channels, constants, free: Sequence[str], start: np.ndarray):
@@ -442,7 +439,7 @@ def profile_likelihood(measurements: Sequence[Measurement], model: Model, channe
             else:
                 problem = FitProblem(measurements, parameters=model.parameters, channels=channels, constants=constants)
                 res = problem.residuals(start)[0]
-                v = _objective(problem, start, float(np.linalg.slogdet(covariance(res))[1]))
+                v = _objective(problem, start, statistics.log_det(statistics.covariance(res)))
                 n_sims += 1
             values.append(g)
             objectives.append(v)

@@ -8,6 +8,7 @@ Objective minimised by both optimisers (negative log-likelihood, concentrated ov
 where R = (1/N) Σ_k e_k e_kᵀ over every complete sample of every experiment (eqs. 48-49)
 and the second sum runs over parameters with a rig pseudo-measurement (MODEL_SPEC,
 resolved ambiguity 4). Minimising V is minimising det R when no pseudo-measurement is free.
+V, R and log det R are computed by :mod:`ema_uq.statistics`.
 """
 from __future__ import annotations
 
@@ -20,6 +21,8 @@ from ..experiments import Measurement
 from ..models import Model, get_model
 from ..params import ParameterSet
 from ..simulate import simulate_batch
+from .. import statistics
+from ..statistics import covariance, log_det, rig_terms
 
 
 class IdentificationError(ValueError):
@@ -168,32 +171,9 @@ class FitProblem:
     # --- likelihood ------------------------------------------------------------------
     def prior_terms(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Free-parameter positions (in the free vector), rig values and rig σ of pseudo-measurements."""
-        pos, mean, std = [], [], []
-        for k, i in enumerate(self.free_index):
-            p = self.parameters.parameters[i]
-            if p.prior_std is not None:
-                pos.append(k)
-                mean.append(p.nominal)
-                std.append(p.prior_std)
-        return np.array(pos, dtype=int), np.array(mean), np.array(std)
+        return rig_terms(self.parameters, self.free_index)
 
     def objective(self, residuals: np.ndarray, free_values: np.ndarray) -> tuple[float, float]:
         """(V, log det R) for one residual array (N, n_channels) at free parameter values."""
-        r = covariance(residuals)
-        logdet = log_det(r)
-        pos, mean, std = self.prior_terms()
-        prior = 0.5 * float(np.sum(((free_values[pos] - mean) / std) ** 2)) if pos.size else 0.0
-        return 0.5 * self.n_samples * logdet + prior, logdet
-
-
-def covariance(residuals: np.ndarray) -> np.ndarray:
-    """R = (1/N) Σ e eᵀ of (N, n_channels) residuals (eq. 49), or a batch (n_sets, N, n_ch)."""
-    n = residuals.shape[-2]
-    return np.einsum("...ki,...kj->...ij", residuals, residuals) / n
-
-
-def log_det(r: np.ndarray) -> float:
-    sign, logdet = np.linalg.slogdet(r)
-    if sign <= 0 or not np.isfinite(logdet):
-        return np.inf
-    return float(logdet)
+        logdet = log_det(covariance(residuals))
+        return statistics.objective(self.n_samples, logdet, free_values, self.parameters, self.free_index), logdet

@@ -10,8 +10,9 @@ from scipy import stats
 
 from ..experiments import Measurement
 from ..simulate import simulate_batch
+from ..statistics import LJUNG_BOX_LAGS, ljung_box, max_cross_correlation
 
-MAX_LAG = 25
+MAX_LAG = LJUNG_BOX_LAGS
 ALPHA = 0.01
 
 
@@ -56,22 +57,6 @@ class ValidationReport:
                              for c in self.channels}}
 
 
-def _normalised_xcorr(a: np.ndarray, b: np.ndarray, max_lag: int) -> np.ndarray:
-    a = (a - a.mean()) / (a.std() * a.size)
-    b = (b - b.mean()) / b.std()
-    full = np.correlate(a, b, mode="full")
-    mid = a.size - 1
-    return full[mid - max_lag: mid + max_lag + 1]
-
-
-def ljung_box(residual: np.ndarray, max_lag: int = MAX_LAG) -> float:
-    """p-value of the Ljung-Box portmanteau test that ``residual`` is white."""
-    n = residual.size
-    r = _normalised_xcorr(residual, residual, max_lag)[max_lag + 1:]
-    q = n * (n + 2) * np.sum(r ** 2 / (n - np.arange(1, max_lag + 1)))
-    return float(stats.chi2.sf(q, max_lag))
-
-
 def validate(fit_values: np.ndarray, measurement: Measurement, *, channels: Sequence[str] | None = None,
              constants: np.ndarray | None = None) -> ValidationReport:
     """Simulate the full parameter vector ``fit_values`` on ``measurement`` and test the residuals.
@@ -97,8 +82,8 @@ def validate(fit_values: np.ndarray, measurement: Measurement, *, channels: Sequ
         nrmse = float(err / spread) if spread > 0 else float("inf")
         e = np.where(ok, z - y, 0.0)
         if ok.all() and np.std(e) > 0:
-            p = ljung_box(e)
-            xc = {k: float(np.max(np.abs(_normalised_xcorr(e, u, MAX_LAG)))) for k, u in inputs.items()}
+            p = ljung_box(e, MAX_LAG)
+            xc = {k: max_cross_correlation(e, u, MAX_LAG) for k, u in inputs.items()}
         else:
             p, xc = float("nan"), {k: float("nan") for k in inputs}
         report.channels.append(ChannelValidation(
