@@ -293,7 +293,7 @@ def _run_identify(args: argparse.Namespace) -> str:
     out["validation"] = [validate(fit.estimate, m, channels=problem.channels, constants=constants).to_json()
                          for m in validation_data]
     if model.name == "emps":  # the report's table beside the published identification
-        from .emps_report import emps_comparison
+        from .emps_benchmark import emps_comparison
 
         out["published_comparison"] = emps_comparison(fit, measurements[0], next(iter(validation_data), None)).to_json()
     io.write_json(args.out, out)
@@ -600,8 +600,11 @@ def _add_gap(subparsers) -> None:
 
 
 def _run_gap(args: argparse.Namespace) -> str:
+    from dataclasses import replace
+
     from . import io
-    from .gap import DiagnosisSettings, diagnose
+    from .gap import diagnose, strategy_for
+    from .models import get_model
     from .provenance import provenance
 
     if not 0 < args.holdout < 1:
@@ -612,62 +615,34 @@ def _run_gap(args: argparse.Namespace) -> str:
     measurements = _read_all(args.data, args.concept)
     validation_data = _read_all(args.validate, args.concept)
     channels = _names(args.channels)
-    if args.concept == "emps":
-        return _run_emps_gap(args, measurements, validation_data, channels)
     if channels is not None:  # the held-out channels follow: those of these the validation data have
         measurements = [m.select(channels) for m in measurements]
 
     def progress(line: str) -> None:
         print(f"{PROG} gap: {line}", file=sys.stderr, flush=True)
 
-    result = diagnose(measurements, validation_data, candidates=_names(args.candidates),
-                      settings=DiagnosisSettings(holdout_fraction=args.holdout), seed=args.seed,
+    model = get_model(measurements[0].concept)
+    strategy = strategy_for(model)
+    if args.set:  # the refits estimate the parameters; the data's design constants must be the simulator's
+        if strategy.constants is not None:
+            raise CLIError(f"concept {model.name} takes its design constants from each record; drop --set "
+                           "(study key data.set)")
+        _, constants = _model_vectors(model, args.set)
+        strategy = replace(strategy, constants=lambda _record: constants)
+    result = diagnose(measurements, validation_data, candidates=_names(args.candidates), strategy=strategy,
+                      settings=replace(strategy.settings, holdout_fraction=args.holdout), seed=args.seed,
                       progress=None if args.quiet else progress)
     result.provenance = provenance(args.data + args.validate, seed=args.seed,
                                    settings={k: v for k, v in vars(args).items() if k != "handler"})
     io.write_json(args.out, result.to_json())
     tail = ""
     if args.figure:
-        from .report.gap_figures import gap_ledger
-
-        gap_ledger(result).savefig(args.figure, dpi=110)
+        strategy.figure(result, validation_data or measurements).savefig(args.figure, dpi=110)
         tail = f", ledger {args.figure}"
     what = {"effect": f"effect {result.effect} ({result.confidence} confidence)", "none": "no significant gap",
             "unexplained": "unexplained gap"}[result.verdict]
     return (f"wrote {args.out}: {result.concept} verdict {what}; held-out gap {result.gap['before']:.3g} -> "
             f"{result.gap['after']:.3g} (shrink {result.gap['shrink']:.2f}), {result.wall_time_s:.0f} s{tail}")
-
-
-def _run_emps_gap(args, measurements, validation_data, channels) -> str:
-    """EMPS: greedy forward selection over the rig's own effects (asymmetric friction, Stribeck,
-    compliance, sensor and actuation delay), each refitted by ML from the nominal fit and kept
-    only when it lowers BIC and the validation force error (``emps_report.emps_gap``)."""
-    from . import io
-    from .emps_report import DEFAULT_CHANNELS, emps_gap
-    from .provenance import provenance
-
-    if len(measurements) != 1 or len(validation_data) != 1:
-        raise CLIError("the EMPS diagnosis takes one estimation record and one --validate record "
-                       "(DATA_EMPS.mat --validate DATA_EMPS_PULSES.mat)")
-
-    def progress(line: str) -> None:
-        print(f"{PROG} gap: {line}", file=sys.stderr, flush=True)
-
-    result = emps_gap(measurements[0], validation_data[0], candidates=_names(args.candidates),
-                      channels=tuple(channels or DEFAULT_CHANNELS), progress=None if args.quiet else progress)
-    out = result.to_json()
-    out["provenance"] = provenance(args.data + args.validate, seed=args.seed,
-                                   settings={k: v for k, v in vars(args).items() if k != "handler"})
-    io.write_json(args.out, out)
-    tail = ""
-    if args.figure:
-        from .report.emps_figures import gap_figure
-
-        gap_figure(result, validation_data[0]).savefig(args.figure, dpi=110)
-        tail = f", ledger {args.figure}"
-    return (f"wrote {args.out}: emps verdict {result.verdict} {result.effect or ''}; selected "
-            f"{' + '.join(result.selected) or 'none'}; validation force error {out['gap']['before']:.3g} % -> "
-            f"{out['gap']['after']:.3g} % (shrink {out['gap']['shrink']:.2f}), {result.wall_time_s:.0f} s{tail}")
 
 
 def _add_gap_selfcheck(subparsers) -> None:

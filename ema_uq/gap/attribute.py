@@ -1,5 +1,13 @@
 """Which unmodelled effect causes the sim-to-real gap, and how much of it does it explain?
 
+One procedure for every concept; what differs between concepts (fitted channels and design
+constants, fit settings, start grid, gap metric, localisation, thresholds, a reference fit
+held for fault diagnosis) comes from its :class:`~ema_uq.gap.strategy.DiagnosisStrategy`.
+The figures below are those of the default strategy (the synthetic actuator concepts); EMPS
+(:data:`ema_uq.emps_benchmark.EMPS_STRATEGY`) refits every parameter from a three-point start
+grid, measures the gap as the benchmark's validation force error, ranks by ΔBIC alone and runs
+two forward-selection rounds.
+
 Procedure (``diagnose``):
 
 1. Held-out data: the ``validation`` measurements when given; otherwise the last
@@ -32,7 +40,10 @@ Procedure (``diagnose``):
 
        score = (ΔBIC + G) · (1 + SIGNATURE_WEIGHT · m)     (when ΔBIC + G > 0, else ΔBIC + G)
 
-5. Verdict:
+5. Forward selection (``DiagnosisSettings.max_effects`` rounds, default 1): when a round's
+   best candidate passes the ``effect`` test below, it joins the model, and the remaining
+   candidates are added to that model and scored against it in the next round.
+6. Verdict:
    ``effect`` when the best candidate has ΔBIC > ``BIC_MIN``, G > ``HELD_OUT_GAIN_MIN`` and,
    if the nominal model's held-out gap is significant (see below), a held-out shrink
    ≥ ``SHRINK_MIN`` (an insignificant gap is noise, and its shrink no evidence). Its
@@ -63,230 +74,42 @@ self-check's own seeds): ``BIC_MIN`` = 25, ``HELD_OUT_GAIN_MIN`` = 25, ``SHRINK_
 On the calibration cases the true effect's ΔBIC was 500-25000 and the best wrong
 candidate's at most 660 (on an out-of-catalogue case, then without held-out shrink).
 """
+
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from .. import statistics
 from ..experiments import Measurement
-from ..identify import FitProblem, IdentificationError, Settings, estimate
-from ..identify.problem import log_det
+from ..identify import FitProblem, FitResult, IdentificationError, Settings, estimate
 from ..models import get_model
 from ..simulate import SimulationError, simulate_batch
-from .localize import (Localization, ResidualRecord, complete_runs, localize,
-                       systematic_nrmse)
+from .localize import ResidualRecord, complete_runs
+from .result import CandidateScore, GapResult
+from .strategy import DiagnosisSettings, DiagnosisStrategy, Thresholds, strategy_for
 
-BIC_MIN = 25.0
-HELD_OUT_GAIN_MIN = 25.0
-SHRINK_MIN = 0.5
-SHRINK_CONFIDENT = 0.8
-MARGIN = 1.5
+_DEFAULT = Thresholds()
+BIC_MIN = _DEFAULT.bic_min
+HELD_OUT_GAIN_MIN = _DEFAULT.held_out_gain_min
+SHRINK_MIN = _DEFAULT.shrink_min
+SHRINK_CONFIDENT = _DEFAULT.shrink_confident
+MARGIN = _DEFAULT.margin
+SIGNATURE_WEIGHT = _DEFAULT.signature_weight
 Z_HELD_OUT = 5.0
-SIGNATURE_WEIGHT = 0.25
-START_MULTIPLES = (0.3, 1.0, 3.0, 10.0)
-PHASE_STARTS = 4
-MAX_GRID = 32
+PHASE_STARTS = statistics.PHASE_STARTS
+MAX_GRID = statistics.MAX_GRID
 SINGULAR_RELATIVE = 1e-10
+
+__all__ = ["CandidateScore", "DiagnosisSettings", "DiagnosisStrategy", "GapError", "GapResult", "diagnose",
+           "split_holdout"]
 
 
 class GapError(ValueError):
     """Data the gap diagnosis cannot use (concept mismatch, no common channel, no catalogue)."""
-
-
-@dataclass(frozen=True)
-class DiagnosisSettings:
-    """Knobs of :func:`diagnose` (the verdict thresholds are module constants, frozen)."""
-
-    holdout_fraction: float = 0.3
-    nominal_max_iterations: int = 30
-    candidate_max_iterations: int = 8
-    screen_base_parameters: int | None = 6
-    final_candidates: int = 2
-    final_max_iterations: int = 15
-    tolerance: float = 1e-5
-
-
-# ----------------------------------------------------------------------------------------
-# results
-# ----------------------------------------------------------------------------------------
-@dataclass
-class CandidateScore:
-    """One candidate effect's refit and scores (see the module docstring for each figure).
-
-    ``parameters`` maps each effect parameter to {"estimate", "std" (Cramér-Rao), "unit"};
-    gaps are held-out systematic NRMSE, ``nrmse_*`` the plain held-out NRMSE (channel mean).
-    """
-
-    effect: str
-    score: float
-    gap_before: float
-    gap_after: float
-    shrink: float
-    likelihood_ratio: float
-    delta_bic: float
-    held_out_gain: float
-    signature_match: float
-    n_parameters: int
-    parameters: dict[str, dict[str, float]] = field(default_factory=dict)
-    log_det_r: float = float("nan")
-    held_out_log_det_r: float = float("nan")
-    nrmse_after: float = float("nan")
-    gap_z_after: float = float("nan")
-    converged: bool = False
-    iterations: int = 0
-    n_simulations: int = 0
-    wall_time_s: float = 0.0
-    message: str = ""
-    estimate: dict[str, float] = field(default_factory=dict, repr=False)
-    stage: str = ""
-    free_parameters: list[str] = field(default_factory=list, repr=False)
-
-    def to_json(self) -> dict[str, Any]:
-        out = {k: _finite(v) for k, v in vars(self).items()}
-        return out
-
-
-def _finite(value):
-    if isinstance(value, float) and not np.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _finite(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_finite(v) for v in value]
-    return value
-
-
-def _unfinite(value):
-    if value is None:
-        return float("nan")
-    return value
-
-
-@dataclass
-class GapResult:
-    """Outcome of a sim-to-real gap diagnosis (GAP.json of INTERFACES.md plus details).
-
-    ``verdict`` is ``"effect"``, ``"none"`` or ``"unexplained"``; ``effect`` the winning
-    catalogue name (None unless the verdict is ``effect``); ``ranking`` every candidate,
-    best score first; ``where`` the channels and regimes holding the nominal model's gap;
-    ``localization``/``localization_held_out`` the nominal model's residual localisation on the
-    estimation and the held-out data, ``localization_after``/``localization_after_held_out``
-    the best candidate's; ``where_source`` says which of the two nominal localisations
-    (the one with the larger systematic z) gave ``where`` and the signature matches.
-    """
-
-    concept: str
-    verdict: str
-    effect: str | None
-    confidence: str
-    ranking: list[CandidateScore]
-    where: dict[str, list[str]]
-    gap: dict[str, Any]
-    localization: Localization
-    localization_held_out: Localization
-    localization_after: Localization | None
-    localization_after_held_out: Localization | None
-    where_source: str
-    held_out: str
-    channels: list[str]
-    held_out_channels: list[str]
-    nominal: dict[str, Any]
-    effect_parameters: dict[str, dict[str, float]]
-    thresholds: dict[str, float]
-    wall_time_s: float
-    n_simulations: int
-    seed: int | None = None
-    provenance: dict[str, Any] = field(default_factory=dict)
-
-    @property
-    def best(self) -> CandidateScore | None:
-        return self.ranking[0] if self.ranking else None
-
-    def summary(self) -> str:
-        head = {"effect": f"effect {self.effect} ({self.confidence} confidence)",
-                "none": "no significant gap: the noise explains the residual",
-                "unexplained": "a significant gap that no candidate effect closes"}[self.verdict]
-        lines = [f"[[Gap diagnosis: {self.concept}]] verdict: {head}",
-                 f"    held-out data      = {self.held_out}",
-                 f"    where (channels)   = {', '.join(self.where['channels']) or '-'}  ({self.where_source} data)",
-                 f"    where (regimes)    = {', '.join(self.where['regimes']) or '-'}",
-                 f"    gap (held-out systematic NRMSE) {self.gap['before']:.4g} -> {self.gap['after']:.4g} "
-                 f"(shrink {self.gap['shrink']:.2f}); plain NRMSE {self.gap['nrmse_before']:.4g} -> "
-                 f"{self.gap['nrmse_after']:.4g}",
-                 f"    wall time          = {self.wall_time_s:.1f} s, {self.n_simulations} simulations",
-                 "[[Ranking]]",
-                 f"    {'effect':<24} {'score':>10} {'dBIC':>10} {'held-out':>10} {'sig':>5} "
-                 f"{'gap before':>10} {'after':>9} {'shrink':>7}"]
-        for c in self.ranking:
-            lines.append(f"    {c.effect:<24} {c.score:>10.1f} {c.delta_bic:>10.1f} {c.held_out_gain:>10.1f} "
-                         f"{c.signature_match:>5.2f} {c.gap_before:>10.4g} {c.gap_after:>9.4g} {c.shrink:>7.2f}"
-                         + ("" if not c.message or c.converged else f"  ({c.message[:60]})"))
-        if self.effect_parameters:
-            lines.append("[[Effect parameters]] (std = Cramér-Rao bound)")
-            for name, p in self.effect_parameters.items():
-                lines.append(f"    {name:<24} = {p['estimate']:.6g} +/- {p['std']:.3g} {p.get('unit', '')}")
-        return "\n".join(lines)
-
-    def to_json(self) -> dict[str, Any]:
-        return _finite({
-            "verdict": self.verdict,
-            "effect": self.effect,
-            "confidence": self.confidence,
-            "ranking": [c.to_json() for c in self.ranking],
-            "where": {"channels": list(self.where["channels"]), "regimes": list(self.where["regimes"])},
-            "concept": self.concept,
-            "gap": self.gap,
-            "effect_parameters": self.effect_parameters,
-            "held_out": self.held_out,
-            "channels": list(self.channels),
-            "held_out_channels": list(self.held_out_channels),
-            "nominal": self.nominal,
-            "where_source": self.where_source,
-            "localization": self.localization.to_json(),
-            "localization_held_out": self.localization_held_out.to_json(),
-            "localization_after": None if self.localization_after is None else self.localization_after.to_json(),
-            "localization_after_held_out": (None if self.localization_after_held_out is None
-                                            else self.localization_after_held_out.to_json()),
-            "thresholds": self.thresholds,
-            "wall_time_s": self.wall_time_s,
-            "n_simulations": self.n_simulations,
-            "seed": self.seed,
-            "provenance": self.provenance,
-        })
-
-    @classmethod
-    def from_json(cls, data: Mapping[str, Any]) -> "GapResult":
-        ranking = []
-        for c in data["ranking"]:
-            c = dict(c)
-            for key in ("score", "gap_before", "gap_after", "shrink", "likelihood_ratio", "delta_bic",
-                        "held_out_gain", "signature_match", "log_det_r", "held_out_log_det_r", "nrmse_after",
-                        "gap_z_after"):
-                if key in c:
-                    c[key] = float(_unfinite(c[key]))
-            ranking.append(CandidateScore(**c))
-        def optional(key):
-            return None if data.get(key) is None else Localization.from_json(data[key])
-
-        gap = {k: _unfinite(v) for k, v in data["gap"].items()}
-        return cls(
-            concept=data["concept"], verdict=data["verdict"], effect=data["effect"],
-            confidence=data.get("confidence", ""), ranking=ranking, where=dict(data["where"]), gap=gap,
-            localization=Localization.from_json(data["localization"]),
-            localization_held_out=Localization.from_json(data["localization_held_out"]),
-            localization_after=optional("localization_after"),
-            localization_after_held_out=optional("localization_after_held_out"),
-            where_source=data.get("where_source", "estimation"),
-            held_out=data.get("held_out", ""), channels=list(data.get("channels", [])),
-            held_out_channels=list(data.get("held_out_channels", [])), nominal=dict(data.get("nominal", {})),
-            effect_parameters=dict(data.get("effect_parameters", {})),
-            thresholds=dict(data.get("thresholds", {})),
-            wall_time_s=float(data.get("wall_time_s", 0.0)), n_simulations=int(data.get("n_simulations", 0)),
-            seed=data.get("seed"), provenance=dict(data.get("provenance", {})),
-        )
 
 
 # ----------------------------------------------------------------------------------------
@@ -329,30 +152,127 @@ def split_holdout(measurements: Sequence[Measurement], fraction: float) -> tuple
     return est, held
 
 
+@dataclass
+class _Split:
+    """Estimation and held-out records, their channels, record names and channel scales."""
+
+    estimation: list[Measurement]
+    held: list[Measurement]
+    channels: list[str]
+    held_channels: list[str]
+    description: str
+    est_names: list[str] = field(init=False)
+    held_names: list[str] = field(init=False)
+    est_spread: np.ndarray = field(init=False)
+    held_spread: np.ndarray = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.est_names = [f"estimation {i + 1}: {m.experiment.name}" for i, m in enumerate(self.estimation)]
+        self.held_names = [f"held-out {i + 1}: {m.experiment.name}" for i, m in enumerate(self.held)]
+        self.est_spread = _spread(self.estimation, self.channels)
+        self.held_spread = _spread(self.held, self.held_channels)
+
+
+def _split(measurements: list[Measurement], validation: list[Measurement], strategy: DiagnosisStrategy,
+           settings: DiagnosisSettings) -> _Split:
+    """Step 1, the hold-out split: the validation records, else the end of every estimation record."""
+    common = _common_channels(measurements)
+    channels = [c for c in strategy.channels if c in common] if strategy.channels else common
+    if not channels:
+        raise GapError("the estimation data share no output channel; give files with at least one common channel"
+                       if not strategy.channels else
+                       f"the estimation data lack the channels {', '.join(strategy.channels)} the {strategy.name} "
+                       "diagnosis fits; give files that measure them")
+    if not validation:
+        estimation, held = split_holdout(measurements, settings.holdout_fraction)
+        return _Split(estimation, held, channels, channels,
+                      f"last {settings.holdout_fraction:.0%} of each estimation record")
+    held_channels = [c for c in channels if all(c in v.channels for v in validation)]
+    if not held_channels:
+        raise GapError(f"the validation data have no channel in common with the estimation data "
+                       f"({', '.join(channels)}); give validation files that measure at least one of them")
+    return _Split(measurements, validation, channels, held_channels,
+                  "validation data (" + ", ".join(v.experiment.name for v in validation) + ")")
+
+
+def _spread(measurements: Sequence[Measurement], channels: Sequence[str]) -> np.ndarray:
+    """Per-channel RMS of the measured values (the scale the gap is expressed in)."""
+    values = np.concatenate([m.select(channels).values for m in measurements])
+    spread = np.sqrt(np.nanmean(values ** 2, axis=0))
+    return np.where(spread > 0, spread, 1.0)
+
+
+# ----------------------------------------------------------------------------------------
+# the state of one diagnosis
+# ----------------------------------------------------------------------------------------
+@dataclass
+class _Reference:
+    """A fitted model candidates are compared with: the nominal fit, or the model with the
+    effects selected so far. ``figures``: its held-out figures (:meth:`_Diagnosis.held_out_figures`)."""
+
+    model: Any
+    fit: FitResult
+    objective: float
+    figures: dict[str, Any]
+    effects: list[str]
+
+
+@dataclass
+class _Diagnosis:
+    """What every step of one diagnosis shares; counts the simulations."""
+
+    strategy: DiagnosisStrategy
+    settings: DiagnosisSettings
+    data: _Split
+    root: Any
+    catalogue: dict[str, Any]
+    say: Callable[[str], None]
+    problem_args: dict[str, Any] = field(default_factory=dict)
+    fixed: list[str] = field(default_factory=list)
+    n_samples: int = 0
+    n_sims: int = 0
+
+    def records(self, model, theta: np.ndarray, held: bool) -> list[ResidualRecord]:
+        """Residual records of one full parameter vector on the held-out or the estimation records."""
+        d = self.data
+        measurements, channels, names = ((d.held, d.held_channels, d.held_names) if held
+                                         else (d.estimation, d.channels, d.est_names))
+        return _simulate_records(model, theta, measurements, channels, names, self.strategy)[0]
+
+    def localise(self, model, theta: np.ndarray, records: Sequence[ResidualRecord], held: bool):
+        d = self.data
+        measurements, channels, spread = ((d.held, d.held_channels, d.held_spread) if held
+                                          else (d.estimation, d.channels, d.est_spread))
+        return self.strategy.localize(records, channels, model, theta, measurements, spread,
+                                      constants=self.strategy.constants_of(measurements[0]))
+
+    def held_out_figures(self, model, records: Sequence[ResidualRecord]) -> dict[str, Any]:
+        """Gap metric and companions on held-out records: the strategy's metric (gap, z,
+        factors, per_channel, significant), plain NRMSE (channel mean), log det R and sample count."""
+        d = self.data
+        segments = [seg for r in records for seg in complete_runs(r.residual)]
+        out = dict(self.strategy.metric.figures(records, d.held, model, d.held_channels, segments, d.held_spread))
+        e = np.concatenate(segments)
+        out.update(nrmse=float(np.mean(np.sqrt(np.mean(e ** 2, axis=0)) / d.held_spread)),
+                   log_det_r=statistics.log_det(e.T @ e / e.shape[0]), n=int(e.shape[0]))
+        return out
+
+
 def _simulate_records(model, thetas: np.ndarray, measurements: Sequence[Measurement], channels: Sequence[str],
-                      names: Sequence[str]) -> list[list[ResidualRecord]]:
-    """Records per parameter set: [set][measurement] ResidualRecord; one batched call per measurement."""
+                      names: Sequence[str], strategy: DiagnosisStrategy | None = None) -> list[list[ResidualRecord]]:
+    """Records per parameter set: [set][measurement] ResidualRecord; one batched call per
+    measurement, with the record's own design constants when the strategy gives them."""
     thetas = np.atleast_2d(thetas)
     idx = model.output_index(channels)
     per_set: list[list[ResidualRecord]] = [[] for _ in range(thetas.shape[0])]
     for name, m in zip(names, measurements):
         inputs = m.experiment.input_matrix(model)
-        out = simulate_batch(model, thetas, m.time, inputs)
+        constants = None if strategy is None else strategy.constants_of(m)
+        out = simulate_batch(model, thetas, m.time, inputs, constants=constants)
         observed = m.select(channels).values
         for s in range(thetas.shape[0]):
             per_set[s].append(ResidualRecord(name, m.time, inputs, observed, out[s][:, idx], out[s]))
     return per_set
-
-
-def _held_out_figures(records: Sequence[ResidualRecord], spread: np.ndarray) -> dict[str, Any]:
-    """Gap metric and companions on held-out records: systematic NRMSE, its z, plain NRMSE, log det R."""
-    segments = [seg for r in records for seg in complete_runs(r.residual)]
-    gap, per_channel, z, factors = systematic_nrmse(segments, spread)
-    e = np.concatenate(segments)
-    nrmse = np.sqrt(np.mean(e ** 2, axis=0)) / spread
-    return {"gap": gap, "z": z, "factors": factors, "per_channel": per_channel, "nrmse": float(np.mean(nrmse)),
-            "log_det_r": log_det(e.T @ e / e.shape[0]), "n": int(e.shape[0]),
-            "significant": bool(z > Z_HELD_OUT or factors > 0)}
 
 
 # ----------------------------------------------------------------------------------------
@@ -370,51 +290,26 @@ def _effect_parameter_names(augmented, base) -> list[str]:
     return [n for n in augmented.parameters.names if n not in base.parameters.names]
 
 
-def _start_values(parameter, start: float) -> np.ndarray:
-    """Start candidates of one effect parameter: a phase [rad] on a grid over one turn, any
-    other parameter at multiples of its ``Effect.start`` value (within bounds)."""
-    if parameter.unit == "rad" and "phase" in parameter.name:
-        values = start + np.arange(PHASE_STARTS) * (2.0 * np.pi / PHASE_STARTS)
-        values = np.where(values > parameter.upper, values - 2.0 * np.pi, values)
-    else:
-        values = start * np.array(START_MULTIPLES) if start != 0 else np.array([start])
-    return np.unique(np.clip(values, parameter.lower, parameter.upper))
-
-
-def _start_grid(augmented, base_values: Mapping[str, float], effect, names: Sequence[str]) -> np.ndarray:
-    """Full start vectors (n_starts, n_params): base parameters at the nominal fit, effect
-    parameters on the grid of :func:`_start_values` (all combinations when at most
-    ``MAX_GRID``, else one parameter varied at a time around ``Effect.start``)."""
+def _start_grid(augmented, base_values, effect, names: Sequence[str],
+                multiples: Sequence[float] = statistics.START_MULTIPLES) -> np.ndarray:
+    """Full start vectors (n_starts, n_params): base parameters at ``base_values`` (the reference
+    fit), effect parameters on the grid of :func:`ema_uq.statistics.start_values` around
+    ``Effect.start`` (every combination when at most ``MAX_GRID``, else one at a time)."""
     params = augmented.parameters
     start = dict(getattr(effect, "start", {}) or {})
-    base_vec = params.vector({**{k: v for k, v in base_values.items() if k in params},
-                              **{n: start[n] for n in names if n in start}})
-    grids = [_start_values(params[n], base_vec[params.index(n)]) for n in names]
-    if int(np.prod([g.size for g in grids])) <= MAX_GRID:
-        mesh = np.meshgrid(*grids, indexing="ij")
-        combos = np.column_stack([g.ravel() for g in mesh])
-    else:
-        centre = base_vec[[params.index(n) for n in names]]
-        combos = [centre]
-        for j, g in enumerate(grids):
-            for v in g:
-                row = centre.copy()
-                row[j] = v
-                combos.append(row)
-        combos = np.array(combos)
-    thetas = np.repeat(base_vec[None], combos.shape[0], axis=0)
-    for j, n in enumerate(names):
-        thetas[:, params.index(n)] = combos[:, j]
-    return np.unique(thetas, axis=0)
+    centre = params.vector({**{k: v for k, v in base_values.items() if k in params},
+                            **{n: start[n] for n in names if n in start}})
+    values = [statistics.start_values(centre[params.index(n)], params[n].lower, params[n].upper,
+                                      phase=params[n].unit == "rad" and "phase" in n, multiples=multiples,
+                                      phase_starts=PHASE_STARTS) for n in names]
+    return statistics.start_grid(centre, [params.index(n) for n in names], values, MAX_GRID)
 
 
 def _full_objective(problem: FitProblem, theta: np.ndarray, log_det_r: float) -> float:
-    """V of ``problem`` (all its free parameters) at ``theta`` given log det R there: (N/2) log det R
-    plus the rig pseudo-measurement terms, so that fits with different free sets compare."""
-    pos, mean, std = problem.prior_terms()
-    free = theta[problem.free_index]
-    prior = 0.5 * float(np.sum(((free[pos] - mean) / std) ** 2)) if pos.size else 0.0
-    return 0.5 * problem.n_samples * log_det_r + prior
+    """V of ``problem`` at ``theta`` given log det R there, the rig terms over its free
+    parameters, so that fits with different free sets compare."""
+    return statistics.objective(problem.n_samples, log_det_r, theta[problem.free_index], problem.parameters,
+                                problem.free_index)
 
 
 def _relevant_base(problem: FitProblem, theta: np.ndarray, predicted: np.ndarray, effect_names: Sequence[str],
@@ -468,22 +363,37 @@ def _unidentifiable_parameters(problem: FitProblem, theta: np.ndarray) -> list[s
     return fixed
 
 
-def _refit(name: str, effect, base, problem_args: dict, nominal_fit, settings: DiagnosisSettings,
-           start: np.ndarray | None = None, screening: bool = True, fixed: Sequence[str] = ()):
-    """ML refit of the base model augmented by one effect.
+def _robust_estimate(problem: FitProblem, start: np.ndarray, settings: Settings) -> FitResult:
+    """Gauss-Newton, retried by Levenberg-Marquardt when a step goes singular: an effect
+    parameter at a bound where another loses its effect (an amplitude at its off bound leaves
+    its phase free, Stribeck Fs = 0 leaves v_s free) makes the Gauss-Newton matrix singular,
+    which the damping survives."""
+    try:
+        return estimate(problem, method="gn", start=start, settings=settings)
+    except (IdentificationError, np.linalg.LinAlgError):
+        return estimate(problem, method="lm", start=start, settings=settings)
+
+
+def _refit(run: _Diagnosis, reference: _Reference, name: str, effect, start: np.ndarray | None = None,
+           screening: bool = True):
+    """ML refit of the reference model augmented by one effect.
 
     Screening (default): start from the best point of the start grid, free the effect
     parameters and the ``screen_base_parameters`` most aliased base ones, Gauss-Newton capped at
-    ``candidate_max_iterations``. Otherwise (the leaders' final refit): every parameter free
-    from ``start``, capped at ``final_max_iterations``. Returns (augmented model, effect parameter
-    names, FitResult, V of the estimate with every parameter counted).
+    ``candidate_max_iterations`` (every parameter free when ``screen_base_parameters`` is None).
+    Otherwise (the leaders' final refit): every parameter free from ``start``, capped at
+    ``final_max_iterations``. Parameters the channels cannot determine, and with ``hold_base``
+    every base parameter, stay held. Returns (augmented model, effect parameter names,
+    FitResult, V of the estimate with every free parameter counted).
     """
-    augmented = base.with_effects([name])
-    names = _effect_parameter_names(augmented, base)
-    problem = FitProblem(model=augmented, parameters=augmented.parameters.fixing(fixed), **problem_args)
+    settings, base = run.settings, run.root
+    augmented = base.with_effects(reference.effects + [name])
+    names = _effect_parameter_names(augmented, reference.model)
+    fixed = run.fixed
+    problem = FitProblem(model=augmented, parameters=augmented.parameters.fixing(fixed), **run.problem_args)
     n_extra = 0
     if start is None:
-        grid = _start_grid(augmented, nominal_fit.as_dict(), effect, names)
+        grid = _start_grid(augmented, reference.fit.as_dict(), effect, names, run.strategy.start_multiples)
         predicted = problem.predict(grid)
         objectives = [problem.objective(problem.observed - predicted[i], grid[i, problem.free_index])[0]
                       for i in range(grid.shape[0])]
@@ -494,21 +404,228 @@ def _refit(name: str, effect, base, problem_args: dict, nominal_fit, settings: D
     if screening:
         cap = settings.candidate_max_iterations
         count = settings.screen_base_parameters
-        if count is not None and count < len(base.parameters):
+        if count is not None and count < len(base.parameters) and not run.strategy.hold_base:
             keep = [n for n in _relevant_base(problem, start, start_prediction, names, count + len(fixed))
                     if n not in fixed][:count]
             n_extra += problem.free_index.size
             fit_problem = FitProblem(model=augmented, parameters=augmented.parameters.freeing_only(keep + names),
-                                     **problem_args)
-    fit_settings = Settings(tolerance=settings.tolerance, max_iterations=cap)
-    try:
-        fit = estimate(fit_problem, method="gn", start=start, settings=fit_settings)
-    except np.linalg.LinAlgError:
-        # a Gauss-Newton step went singular (typically an amplitude reaching its off bound,
-        # which leaves its phase without effect); Levenberg-Marquardt's damping cannot
-        fit = estimate(fit_problem, method="lm", start=start, settings=fit_settings)
+                                     **run.problem_args)
+    fit = _robust_estimate(fit_problem, start, Settings(tolerance=settings.tolerance, max_iterations=cap))
     fit.n_simulations += n_extra
     return augmented, names, fit, _full_objective(problem, fit.estimate, fit.log_det_r)
+
+
+def _parameter_table(model, fit: FitResult, names: Sequence[str]) -> dict[str, dict[str, float]]:
+    """{name: {"estimate", "std" (Cramér-Rao), "unit"}} of parameters ``names`` of a fit."""
+    return {p: {"estimate": fit.value(p), "std": float(fit.std[fit.names.index(p)]),
+                "unit": model.parameters[p].unit} for p in names}
+
+
+# ----------------------------------------------------------------------------------------
+# the steps of the diagnosis
+# ----------------------------------------------------------------------------------------
+def _held_base_fit(run: _Diagnosis, theta: np.ndarray) -> FitResult:
+    """The nominal model at the reference fit, evaluated (no parameter fitted): fault diagnosis."""
+    problem = FitProblem(model=run.root, **run.problem_args)
+    residual = problem.residuals(theta[None])[0]
+    r = statistics.covariance(residual)
+    logdet = statistics.log_det(r)
+    p = run.root.parameters
+    return FitResult(run.root.name, "held", tuple(p.names), tuple(q.unit for q in p.parameters),
+                     np.zeros(len(p), dtype=bool), theta.copy(), theta.copy(), np.zeros(len(p)), np.zeros((0, 0)),
+                     tuple(problem.channels), r, logdet, statistics.objective(problem.n_samples, logdet),
+                     problem.n_samples, True, "base parameters held at the reference fit", 0, 1, 0.0)
+
+
+def _fit_nominal(run: _Diagnosis):
+    """Step 2: the nominal ML fit on the estimation data (or, holding the base parameters, the
+    reference fit evaluated there) and the localisation of its residual on the estimation and
+    the held-out data. Returns (reference, localisation on estimation, on held-out data)."""
+    d, strategy, settings, base = run.data, run.strategy, run.settings, run.root
+    run.problem_args = {"measurements": d.estimation, "channels": d.channels}
+    if strategy.constants is not None:
+        run.problem_args["constants"] = strategy.constants(d.estimation[0])
+    reference = {k: v for k, v in (strategy.reference_fit or {}).items() if k in base.parameters}
+    start = base.parameters.vector(reference)
+    problem = FitProblem(**run.problem_args)
+    run.n_samples = problem.n_samples
+    if strategy.hold_base:
+        run.fixed = list(base.parameters.names)
+        run.say(f"{base.name} held at the reference fit; {problem.n_samples} samples x {len(d.channels)} channels")
+        nominal = _held_base_fit(run, start)
+    else:
+        run.fixed = _unidentifiable_parameters(problem, start)
+        run.n_sims += problem.free_index.size + 1
+        if run.fixed:
+            problem = FitProblem(parameters=base.parameters.fixing(run.fixed), **run.problem_args)
+        run.say(f"nominal ML fit of {base.name} on {problem.n_samples} samples x {len(d.channels)} channels"
+                + (f" ({', '.join(run.fixed)} held at nominal: these channels cannot determine them)"
+                   if run.fixed else ""))
+        nominal = estimate(problem, method="gn", start=start if reference else None,
+                           settings=Settings(tolerance=settings.tolerance, max_iterations=settings.nominal_max_iterations))
+    run.n_sims += nominal.n_simulations
+    est_records = run.records(base, nominal.estimate, held=False)
+    held_records = run.records(base, nominal.estimate, held=True)
+    run.n_sims += len(d.estimation) + len(d.held)
+    loc_est = run.localise(base, nominal.estimate, est_records, held=False)
+    loc_held = run.localise(base, nominal.estimate, held_records, held=True)
+    before = run.held_out_figures(base, held_records)
+    run.say(f"nominal: log det R {nominal.log_det_r:.4g}, held-out gap {before['gap']:.4g} "
+            f"(z {before['z']:.1f}); {'structured' if loc_est.structured else 'white'} residual")
+    return _Reference(base, nominal, nominal.objective, before, []), loc_est, loc_held
+
+
+def _score(run: _Diagnosis, reference: _Reference, name: str, effect, refit, seconds: float, stage: str,
+           loc) -> tuple[CandidateScore, dict[str, Any]]:
+    """Step 5: one refitted candidate's scores against the reference (module docstring, step 4)
+    and its held-out figures."""
+    augmented, names, fit, objective = refit
+    th = run.strategy.thresholds
+    before = reference.figures
+    lr = 2.0 * (reference.objective - objective)
+    delta_bic = lr - len(names) * np.log(run.n_samples)
+    after = run.held_out_figures(augmented, run.records(augmented, fit.estimate, held=True))
+    gain = after["n"] * (before["log_det_r"] - after["log_det_r"])
+    shrink = 1.0 - after["gap"] / before["gap"] if before["gap"] > 0 else 0.0
+    match = loc.signature_match(tuple(getattr(effect, "signature", ()) or ()))
+    raw = delta_bic + gain if th.gain_in_score else delta_bic
+    score = raw * (1.0 + th.signature_weight * match) if raw > 0 else raw
+    run.say(f"  {name} ({stage}): dBIC {delta_bic:.1f}, held-out gain {gain:.1f}, shrink {shrink:.2f}, "
+            f"{seconds:.1f} s")
+    row = CandidateScore(
+        name, float(score), before["gap"], after["gap"], float(shrink), float(lr), float(delta_bic),
+        float(gain), float(match), len(names), _parameter_table(augmented, fit, names), fit.log_det_r,
+        after["log_det_r"], after["nrmse"], after["z"], bool(fit.converged), fit.iterations, fit.n_simulations,
+        seconds, fit.message, fit.as_dict(), stage, list(fit.free_names))
+    return row, after
+
+
+def _candidate(run: _Diagnosis, reference: _Reference, name: str, effect, loc, fits: dict, **kwargs) -> CandidateScore:
+    """Refit and score one candidate (a failed refit scores -inf); its fit goes into ``fits``."""
+    tc = time.perf_counter()
+    try:
+        # trial points that simulate to NaN have det R = NaN; the optimiser rejects them
+        with np.errstate(invalid="ignore", over="ignore"):
+            refit = _refit(run, reference, name, effect, **kwargs)
+    except (IdentificationError, SimulationError, np.linalg.LinAlgError) as exc:
+        run.say(f"  {name}: refit failed ({exc})")
+        return CandidateScore(name, float("-inf"), reference.figures["gap"], float("nan"), float("nan"),
+                              float("nan"), float("nan"), float("nan"), 0.0, 0,
+                              message=f"refit failed: {exc}", wall_time_s=time.perf_counter() - tc)
+    stage = "screening" if kwargs.get("screening", True) else "final"
+    row, after = _score(run, reference, name, effect, refit, time.perf_counter() - tc, stage, loc)
+    run.n_sims += refit[2].n_simulations + len(run.data.held)
+    fits[name] = (refit, after)
+    return row
+
+
+def _ranked(rows: list[CandidateScore]) -> list[CandidateScore]:
+    return sorted(rows, key=lambda c: -c.score if np.isfinite(c.score) else np.inf)
+
+
+def _candidate_round(run: _Diagnosis, reference: _Reference, pool: dict[str, Any], loc):
+    """Steps 3-4: screening refit of every candidate in ``pool``, then the leaders' final
+    refits with every parameter free. Returns (ranking, {name: (refit, held-out figures)})."""
+    fits: dict[str, Any] = {}
+    ranking = _ranked([_candidate(run, reference, name, effect, loc, fits) for name, effect in pool.items()])
+    if run.settings.screen_base_parameters is None:
+        return ranking, fits
+    leaders = [c for c in ranking[:run.settings.final_candidates] if np.isfinite(c.score)]
+    for row in [c for i, c in enumerate(leaders) if i == 0 or c.score > 0]:
+        screened = fits[row.effect][0][2]
+        final = _candidate(run, reference, row.effect, pool[row.effect], loc, fits, start=screened.estimate,
+                           screening=False)
+        if not np.isfinite(final.score):
+            continue
+        final.wall_time_s += row.wall_time_s
+        final.n_simulations += row.n_simulations
+        ranking[ranking.index(row)] = final
+    return _ranked(ranking), fits
+
+
+def _passes(th: Thresholds, best: CandidateScore | None, significant: bool) -> bool:
+    """The ``effect`` test: ΔBIC, held-out gain and (where the reference's held-out gap is
+    significant: an insignificant gap is noise, and its shrink no evidence) shrink."""
+    return (best is not None and best.delta_bic > th.bic_min
+            and (th.held_out_gain_min is None or best.held_out_gain > th.held_out_gain_min)
+            and (best.shrink >= th.shrink_min or not significant))
+
+
+def _forward_selection(run: _Diagnosis, nominal: _Reference, loc):
+    """Steps 3-5 in rounds: a round's passing winner joins the reference model of the next.
+    Returns (rounds of rankings, selected effects, per-round fits, the model after: (reference
+    of the last selected effect, or of round 1's best candidate, and its score) or None)."""
+    reference, selected, rounds, round_fits = nominal, [], [], []
+    for _ in range(run.settings.max_effects):
+        pool = {k: v for k, v in run.catalogue.items() if k not in selected}
+        if not pool:
+            break
+        ranking, fits = _candidate_round(run, reference, pool, loc)
+        rounds.append(ranking)
+        round_fits.append(fits)
+        best = ranking[0] if ranking and np.isfinite(ranking[0].score) else None
+        if not _passes(run.strategy.thresholds, best, reference.figures["significant"]):
+            break
+        selected.append(best.effect)
+        (model, _, fit, objective), figures = fits[best.effect]
+        reference = _Reference(model, fit, objective, figures, list(selected))
+    return rounds, selected, round_fits
+
+
+def _after_model(run: _Diagnosis, rounds, selected, round_fits):
+    """The model the gap is measured after: that of the last selected effect, else round 1's
+    best candidate. Returns (its CandidateScore, (model, fit), effect names of the model) or Nones."""
+    if selected:
+        r = len(selected) - 1
+        name, effects = selected[-1], list(selected)
+    elif rounds and rounds[0] and np.isfinite(rounds[0][0].score):
+        r, name = 0, rounds[0][0].effect
+        effects = [name]
+    else:
+        return None, None, []
+    if name not in round_fits[r]:
+        return None, None, []
+    (model, _, fit, _), _ = round_fits[r][name]
+    return next(c for c in rounds[r] if c.effect == name), (model, fit), effects
+
+
+def _verdict(th: Thresholds, ranking: list[CandidateScore], significant: bool, structured: bool,
+             loc_after, loc_after_held) -> tuple[str, str | None, str]:
+    """Step 6: (verdict, effect, confidence) from round 1 (module docstring)."""
+    best = ranking[0] if ranking and np.isfinite(ranking[0].score) else None
+    runner_up = ranking[1].score if len(ranking) > 1 and np.isfinite(ranking[1].score) else 0.0
+    if _passes(th, best, significant):
+        confident = (best.score >= th.margin * max(runner_up, 0.0)
+                     and (best.shrink >= th.shrink_confident or not significant)
+                     and loc_after is not None and not loc_after.structured and not loc_after_held.structured)
+        return "effect", best.effect, "high" if confident else "low"
+    if structured or significant:
+        return "unexplained", None, "high" if best is None or best.shrink < th.shrink_min / 2 else "low"
+    return "none", None, "high"
+
+
+def _gap_summary(metric, before: dict, chosen: CandidateScore | None) -> dict[str, Any]:
+    """GAP.json ``gap``: the held-out gap before (nominal) and after (the model after)."""
+    after = chosen.gap_after if chosen else before["gap"]
+    return {
+        "metric": metric.description,
+        "before": before["gap"], "after": after,
+        "shrink": (1.0 - after / before["gap"] if before["gap"] > 0 else 0.0) if chosen else 0.0,
+        "z_before": before["z"],
+        "common_factors_before": before["factors"], "significant_before": before["significant"],
+        "z_after": chosen.gap_z_after if chosen else before["z"],
+        "nrmse_before": before["nrmse"], "nrmse_after": chosen.nrmse_after if chosen else before["nrmse"],
+        "log_det_R_before": before["log_det_r"],
+        "log_det_R_after": chosen.held_out_log_det_r if chosen else before["log_det_r"],
+        "per_channel_before": dict(before["per_channel"]),
+        "effect_of_after": chosen.effect if chosen else None,
+    }
+
+
+def _thresholds_json(strategy: DiagnosisStrategy) -> dict[str, Any]:
+    out = strategy.thresholds.to_json()
+    z = getattr(strategy.metric, "z_significant", None)
+    return {**out, "Z_HELD_OUT": z} if z is not None else out
 
 
 # ----------------------------------------------------------------------------------------
@@ -519,7 +636,8 @@ def diagnose(
     validation: Sequence[Measurement] = (),
     *,
     candidates: Sequence[str] | None = None,
-    settings: DiagnosisSettings = DiagnosisSettings(),
+    settings: DiagnosisSettings | None = None,
+    strategy: DiagnosisStrategy | None = None,
     seed: int | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> GapResult:
@@ -528,13 +646,16 @@ def diagnose(
     ``validation`` measurements (same concept, at least one channel in common with the
     estimation data) are the held-out data; without them the last ``settings.holdout_fraction``
     of each record is held out. ``candidates`` restricts the catalogue (default: every effect
-    available for the concept). Returns a :class:`GapResult`.
+    available for the concept). ``strategy`` (default: :func:`strategy_for` the concept) says
+    how the concept is treated, ``settings`` (default: the strategy's) the fit knobs.
+    Returns a :class:`GapResult`.
     """
     t0 = time.perf_counter()
-    say = progress or (lambda _line: None)
     measurements, validation = list(measurements), list(validation)
     concept = _check_inputs(measurements, validation)
     base = get_model(concept)
+    strategy = strategy_for(base) if strategy is None else strategy
+    settings = strategy.settings if settings is None else settings
     catalogue = _catalogue(base)
     if candidates is not None:
         unknown = [c for c in candidates if c not in catalogue]
@@ -542,173 +663,40 @@ def diagnose(
             raise GapError(f"unknown candidate effect(s) {', '.join(unknown)} for concept {concept}; "
                            f"choose from {', '.join(catalogue)}")
         catalogue = {c: catalogue[c] for c in candidates}
-
-    channels = _common_channels(measurements)
-    if not channels:
-        raise GapError("the estimation data share no output channel; give files with at least one common channel")
-    if validation:
-        held_channels = [c for c in channels if all(c in v.channels for v in validation)]
-        if not held_channels:
-            raise GapError(f"the validation data have no channel in common with the estimation data "
-                           f"({', '.join(channels)}); give validation files that measure at least one of them")
-        estimation, held = measurements, validation
-        held_out = "validation data (" + ", ".join(v.experiment.name for v in validation) + ")"
-    else:
-        held_channels = channels
-        estimation, held = split_holdout(measurements, settings.holdout_fraction)
-        held_out = f"last {settings.holdout_fraction:.0%} of each estimation record"
-    est_names = [f"estimation {i + 1}: {m.experiment.name}" for i, m in enumerate(estimation)]
-    held_names = [f"held-out {i + 1}: {m.experiment.name}" for i, m in enumerate(held)]
-    n_sims = 0
-
-    # --- nominal fit and localisation -------------------------------------------------
-    problem_args = {"measurements": estimation, "channels": channels}
-    problem = FitProblem(**problem_args)
-    fixed = _unidentifiable_parameters(problem, base.parameters.nominal)
-    n_sims += problem.free_index.size + 1
-    if fixed:
-        problem = FitProblem(parameters=base.parameters.fixing(fixed), **problem_args)
-    say(f"nominal ML fit of {concept} on {problem.n_samples} samples x {len(channels)} channels"
-        + (f" ({', '.join(fixed)} held at nominal: these channels cannot determine them)" if fixed else ""))
-    nominal = estimate(problem, method="gn", settings=Settings(tolerance=settings.tolerance,
-                                                               max_iterations=settings.nominal_max_iterations))
-    n_sims += nominal.n_simulations
-    est_spread = _spread(estimation, channels)
-    held_spread = _spread(held, held_channels)
-    est_records = _simulate_records(base, nominal.estimate, estimation, channels, est_names)[0]
-    held_records = _simulate_records(base, nominal.estimate, held, held_channels, held_names)[0]
-    n_sims += len(estimation) + len(held)
-    loc_est = localize(est_records, channels, base, nominal.estimate, spread=est_spread)
-    loc_held = localize(held_records, held_channels, base, nominal.estimate, spread=held_spread)
+    run = _Diagnosis(strategy, settings, _split(measurements, validation, strategy, settings), base, catalogue,
+                     progress or (lambda _line: None))
+    nominal, loc_est, loc_held = _fit_nominal(run)
     # where the gap shows most clearly: a gap in extrapolation shows on held-out data only
-    loc, where_source = (loc_held, "held-out") if loc_held.z > loc_est.z else (loc_est, "estimation")
-    before = _held_out_figures(held_records, held_spread)
-    say(f"nominal: log det R {nominal.log_det_r:.4g}, held-out systematic NRMSE {before['gap']:.4g} "
-        f"(z {before['z']:.1f}); {'structured' if loc_est.structured else 'white'} residual")
-
-    # --- candidates: screening refits, then every-parameter refits of the leaders ------------
-    n = problem.n_samples
-    fitted: dict[str, tuple[Any, Any]] = {}
-
-    def scored(name, effect, augmented, names, fit, objective, seconds, stage) -> CandidateScore:
-        lr = 2.0 * (nominal.objective - objective)
-        delta_bic = lr - len(names) * np.log(n)
-        after = _held_out_figures(_simulate_records(augmented, fit.estimate, held, held_channels, held_names)[0],
-                                  held_spread)
-        gain = after["n"] * (before["log_det_r"] - after["log_det_r"])
-        shrink = 1.0 - after["gap"] / before["gap"] if before["gap"] > 0 else 0.0
-        match = loc.signature_match(tuple(getattr(effect, "signature", ()) or ()))
-        raw = delta_bic + gain
-        score = raw * (1.0 + SIGNATURE_WEIGHT * match) if raw > 0 else raw
-        params = {p: {"estimate": fit.value(p), "std": float(fit.std[fit.names.index(p)]),
-                      "unit": augmented.parameters[p].unit} for p in names}
-        fitted[name] = (augmented, fit)
-        say(f"  {name} ({stage}): dBIC {delta_bic:.1f}, held-out gain {gain:.1f}, shrink {shrink:.2f}, "
-            f"{seconds:.1f} s")
-        return CandidateScore(
-            name, float(score), before["gap"], after["gap"], float(shrink), float(lr), float(delta_bic),
-            float(gain), float(match), len(names), params, fit.log_det_r, after["log_det_r"], after["nrmse"],
-            after["z"], bool(fit.converged), fit.iterations, fit.n_simulations, seconds, fit.message,
-            fit.as_dict(), stage, list(fit.free_names))
-
-    def refit(name, effect, **kwargs):
-        tc = time.perf_counter()
-        try:
-            # trial points that simulate to NaN have det R = NaN; the optimiser rejects them
-            with np.errstate(invalid="ignore", over="ignore"):
-                augmented, names, fit, objective = _refit(name, effect, base, problem_args, nominal, settings,
-                                                          fixed=fixed, **kwargs)
-        except (IdentificationError, SimulationError, np.linalg.LinAlgError) as exc:
-            say(f"  {name}: refit failed ({exc})")
-            return None, CandidateScore(name, float("-inf"), before["gap"], float("nan"), float("nan"),
-                                        float("nan"), float("nan"), float("nan"), 0.0, 0,
-                                        message=f"refit failed: {exc}", wall_time_s=time.perf_counter() - tc)
-        return fit, scored(name, effect, augmented, names, fit, objective, time.perf_counter() - tc,
-                           "screening" if kwargs.get("screening", True) else "final")
-
-    ranking: list[CandidateScore] = []
-    for name, effect in catalogue.items():
-        fit, row = refit(name, effect)
-        n_sims += (fit.n_simulations + len(held)) if fit is not None else 0
-        ranking.append(row)
-    ranking.sort(key=lambda c: -c.score if np.isfinite(c.score) else np.inf)
-    if settings.screen_base_parameters is not None:
-        leaders = [c for c in ranking[:settings.final_candidates] if np.isfinite(c.score)]
-        leaders = [c for i, c in enumerate(leaders) if i == 0 or c.score > 0]
-        for row in leaders:
-            augmented, screened = fitted[row.effect]
-            fit, final = refit(row.effect, catalogue[row.effect], start=screened.estimate, screening=False)
-            if fit is None:
-                continue
-            n_sims += fit.n_simulations + len(held)
-            final.wall_time_s += row.wall_time_s
-            final.n_simulations += row.n_simulations
-            ranking[ranking.index(row)] = final
-        ranking.sort(key=lambda c: -c.score if np.isfinite(c.score) else np.inf)
-
-    # --- verdict ----------------------------------------------------------------------------
-    best = ranking[0] if ranking and np.isfinite(ranking[0].score) else None
-    runner_up = ranking[1].score if len(ranking) > 1 and np.isfinite(ranking[1].score) else 0.0
-    held_significant = before["significant"]
-    loc_after, loc_after_held, effect_parameters = None, None, {}
-    if best is not None and best.effect in fitted:
-        augmented, fit = fitted[best.effect]
-        recs = _simulate_records(augmented, fit.estimate, estimation, channels, est_names)[0]
-        held_after = _simulate_records(augmented, fit.estimate, held, held_channels, held_names)[0]
-        n_sims += len(estimation) + len(held)
-        loc_after = localize(recs, channels, augmented, fit.estimate, spread=est_spread)
-        loc_after_held = localize(held_after, held_channels, augmented, fit.estimate, spread=held_spread)
-        effect_parameters = dict(best.parameters)
-    # shrink is only evidence where the held-out gap stands out of the noise
-    closes_gap = best is not None and (best.shrink >= SHRINK_MIN or not held_significant)
-    if (best is not None and best.delta_bic > BIC_MIN and best.held_out_gain > HELD_OUT_GAIN_MIN
-            and closes_gap):
-        verdict, effect = "effect", best.effect
-        confident = (best.score >= MARGIN * max(runner_up, 0.0)
-                     and (best.shrink >= SHRINK_CONFIDENT or not held_significant)
-                     and loc_after is not None and not loc_after.structured and not loc_after_held.structured)
-        confidence = "high" if confident else "low"
-    elif loc_est.structured or loc_held.structured or held_significant:
-        verdict, effect = "unexplained", None
-        confidence = "high" if best is None or best.shrink < SHRINK_MIN / 2 else "low"
+    if strategy.where_source == "held-out" or loc_held.z > loc_est.z:
+        loc, where_source = loc_held, "held-out"
     else:
-        verdict, effect, confidence = "none", None, "high"
-    winner = best.effect if best is not None else None
-
-    chosen = next((c for c in ranking if c.effect == winner), None)
-    gap = {
-        "metric": "held-out systematic NRMSE: sqrt(channel mean of short-lag residual products / mean square)",
-        "before": before["gap"], "after": chosen.gap_after if chosen else before["gap"],
-        "shrink": chosen.shrink if chosen else 0.0, "z_before": before["z"],
-        "common_factors_before": before["factors"], "significant_before": before["significant"],
-        "z_after": chosen.gap_z_after if chosen else before["z"],
-        "nrmse_before": before["nrmse"], "nrmse_after": chosen.nrmse_after if chosen else before["nrmse"],
-        "log_det_R_before": before["log_det_r"],
-        "log_det_R_after": chosen.held_out_log_det_r if chosen else before["log_det_r"],
-        "per_channel_before": dict(zip(held_channels, map(float, before["per_channel"]))),
-        "effect_of_after": winner,
-    }
-    nominal_json = {"log_det_R": nominal.log_det_r, "objective": nominal.objective, "converged": nominal.converged,
-                    "fixed": fixed,
-                    "iterations": nominal.iterations, "n_samples": nominal.n_samples,
-                    "estimate": nominal.as_dict(),
-                    "std": {nm: float(s) for nm, s in zip(nominal.names, nominal.std)}}
-    thresholds = {"BIC_MIN": BIC_MIN, "HELD_OUT_GAIN_MIN": HELD_OUT_GAIN_MIN, "SHRINK_MIN": SHRINK_MIN, "SHRINK_CONFIDENT": SHRINK_CONFIDENT,
-                  "MARGIN": MARGIN, "Z_HELD_OUT": Z_HELD_OUT, "SIGNATURE_WEIGHT": SIGNATURE_WEIGHT}
+        loc, where_source = loc_est, "estimation"
+    rounds, selected, round_fits = _forward_selection(run, nominal, loc)
+    chosen, after, effects = _after_model(run, rounds, selected, round_fits)
+    loc_after = loc_after_held = None
+    effect_parameters: dict[str, dict[str, float]] = {}
+    if after is not None:
+        model, fit = after
+        loc_after = run.localise(model, fit.estimate, run.records(model, fit.estimate, held=False), held=False)
+        loc_after_held = run.localise(model, fit.estimate, run.records(model, fit.estimate, held=True), held=True)
+        run.n_sims += len(run.data.estimation) + len(run.data.held)
+        effect_parameters = _parameter_table(model, fit, _effect_parameter_names(model, base))
+    ranking = rounds[0] if rounds else []
+    before = nominal.figures
+    verdict, effect, confidence = _verdict(strategy.thresholds, ranking, before["significant"],
+                                           loc_est.structured or loc_held.structured, loc_after, loc_after_held)
+    fit = nominal.fit
+    nominal_json = {"log_det_R": fit.log_det_r, "objective": fit.objective, "converged": fit.converged,
+                    "fixed": run.fixed, "iterations": fit.iterations, "n_samples": fit.n_samples,
+                    "estimate": fit.as_dict(), "std": {nm: float(s) for nm, s in zip(fit.names, fit.std)}}
+    d = run.data
     return GapResult(
         concept=concept, verdict=verdict, effect=effect, confidence=confidence, ranking=ranking,
-        where={"channels": loc.where_channels(), "regimes": loc.where_regimes}, gap=gap,
+        where={"channels": loc.where_channels(), "regimes": loc.where_regimes}, gap=_gap_summary(strategy.metric, before, chosen),
         localization=loc_est, localization_held_out=loc_held, localization_after=loc_after,
-        localization_after_held_out=loc_after_held, where_source=where_source, held_out=held_out,
-        channels=list(channels),
-        held_out_channels=list(held_channels), nominal=nominal_json, effect_parameters=effect_parameters,
-        thresholds=thresholds,
-        wall_time_s=time.perf_counter() - t0, n_simulations=n_sims, seed=seed,
+        localization_after_held_out=loc_after_held, where_source=where_source, held_out=d.description,
+        channels=list(d.channels), held_out_channels=list(d.held_channels), nominal=nominal_json,
+        effect_parameters=effect_parameters, thresholds=_thresholds_json(strategy),
+        wall_time_s=time.perf_counter() - t0, n_simulations=run.n_sims, seed=seed,
+        selected=list(selected), further_rounds=rounds[1:],
     )
-
-
-def _spread(measurements: Sequence[Measurement], channels: Sequence[str]) -> np.ndarray:
-    """Per-channel RMS of the measured values (the scale the gap is expressed in)."""
-    values = np.concatenate([m.select(channels).values for m in measurements])
-    spread = np.sqrt(np.nanmean(values ** 2, axis=0))
-    return np.where(spread > 0, spread, 1.0)

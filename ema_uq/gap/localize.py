@@ -55,10 +55,12 @@ noise standard deviations. A regime *holds* the gap when z ≥ ``Z_REGIME`` and 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Mapping, Sequence
+from typing import Any, ClassVar, Mapping, Sequence
 
 import numpy as np
 from scipy import stats
+
+from ..statistics import LJUNG_BOX_LAGS, ljung_box, max_cross_correlation, speed_regimes
 
 
 LAG_WEIGHTS = (0.2,) * 5
@@ -79,7 +81,7 @@ Z_REGIME = 4.0
 MIN_ENRICHMENT = 1.5
 DIRECTION_RATIO = 2.0
 MIN_SHARE = 0.10          # periodic/delay: least share of the gap to be named
-MAX_LAG = 25
+MAX_LAG = LJUNG_BOX_LAGS
 MAX_FACTORS = 8
 PSI_FLOOR = 1e-4          # least uniqueness (share of a channel's mean square) of the factor model
 
@@ -291,9 +293,10 @@ def regime_masks(model, theta: np.ndarray, constants: np.ndarray, time: np.ndarr
     dt = float(time[1] - time[0])
     omega = _output(model, outputs, "Omega")
     peak = max(float(np.max(np.abs(omega))), 1e-12)
-    moving = np.abs(omega) > LOW_SPEED_FRACTION * peak
-    masks = {"low_speed": ~moving, "moving": moving, "extend": omega > LOW_SPEED_FRACTION * peak,
-             "retract": omega < -LOW_SPEED_FRACTION * peak}
+    speed = speed_regimes(omega, dt, low_fraction=LOW_SPEED_FRACTION, acceleration_fraction=ACCELERATION_FRACTION)
+    moving = speed["moving"]
+    masks = {"low_speed": speed["low_speed"], "moving": moving, "extend": speed["forward"],
+             "retract": speed["backward"]}
 
     reversal = np.zeros(time.size, dtype=bool)
     before, after = int(round(REVERSAL_BEFORE_S / dt)), int(round(REVERSAL_AFTER_S / dt))
@@ -311,8 +314,7 @@ def regime_masks(model, theta: np.ndarray, constants: np.ndarray, time: np.ndarr
             reversal[max(k - half, 0): k + half + 1] = True
     masks["reversal"] = reversal
 
-    accel = np.gradient(omega, dt)
-    masks["high_acceleration"] = np.abs(accel) > ACCELERATION_FRACTION * max(float(np.max(np.abs(accel))), 1e-12)
+    masks["high_acceleration"] = speed["accelerating"]
     load = np.abs(inputs[:, 1]) + np.abs(inputs[:, 2])
     # while moving: at rest most load-driven losses (friction) vanish with the speed
     masks["high_load"] = moving & (load > HIGH_LOAD_FRACTION * max(float(np.max(load)), 1e-12))
@@ -500,29 +502,66 @@ class Localization:
         )
 
 
+@dataclass
+class RegimeRms:
+    """A coarser localisation for rigs whose records support no residual tests of the
+    actuator kind (e.g. EMPS): the RMS of one residual signal (``channel``, in its unit)
+    overall and per operating regime. ``regimes`` maps a regime to {"rms", "ratio" (to the
+    overall RMS), "share_of_samples"}; a regime holds the gap when its ratio exceeds
+    ``hold_ratio``. No residual test is run (``structured`` False, ``z`` NaN)."""
+
+    KIND: ClassVar[str] = "regime_rms"
+    channel: str
+    rms: float
+    regimes: dict[str, dict[str, float]]
+    hold_ratio: float = 1.2
+    z: float = float("nan")
+    structured: bool = False
+
+    @classmethod
+    def of(cls, channel: str, residual: np.ndarray, masks: Mapping[str, np.ndarray],
+           hold_ratio: float = 1.2) -> "RegimeRms":
+        """From a residual (n,) and regime masks (n,) over the same samples (regimes without a sample are left out)."""
+        overall = float(np.sqrt(np.mean(residual ** 2)))
+        regimes = {}
+        for name, mask in masks.items():
+            if mask.any():
+                rms = float(np.sqrt(np.mean(residual[mask] ** 2)))
+                regimes[name] = {"rms": rms, "ratio": rms / overall, "share_of_samples": float(mask.mean())}
+        return cls(channel, overall, regimes, hold_ratio)
+
+    @property
+    def where_regimes(self) -> list[str]:
+        """Regimes whose RMS ratio exceeds ``hold_ratio``, largest first."""
+        ranked = sorted(self.regimes.items(), key=lambda kv: -kv[1]["ratio"])
+        return [name for name, r in ranked if r["ratio"] > self.hold_ratio]
+
+    def where_channels(self) -> list[str]:
+        return [self.channel]
+
+    def signature_match(self, signature: Sequence[str]) -> float:
+        """Fraction of the signature regimes that hold the gap."""
+        return float(np.mean([name in self.where_regimes for name in signature])) if signature else 0.0
+
+    def summary(self) -> str:
+        rows = [f"Residual {self.channel} by regime: RMS {self.rms:.4g} overall"]
+        rows += [f"  {name:<18} RMS {r['rms']:>9.4g}  ratio {r['ratio']:>5.2f}  samples {r['share_of_samples']:.3f}"
+                 for name, r in self.regimes.items()]
+        return "\n".join(rows)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"kind": self.KIND, "channel": self.channel, "rms": self.rms, "regimes": self.regimes,
+                "hold_ratio": self.hold_ratio, "where_regimes": self.where_regimes}
+
+    @classmethod
+    def from_json(cls, data: Mapping[str, Any]) -> "RegimeRms":
+        return cls(data["channel"], float(data["rms"]), {k: dict(v) for k, v in data["regimes"].items()},
+                   float(data.get("hold_ratio", 1.2)))
+
+
 # ----------------------------------------------------------------------------------------
 # localisation
 # ----------------------------------------------------------------------------------------
-def _lagged_correlation(a: np.ndarray, b: np.ndarray, lags: np.ndarray) -> np.ndarray:
-    """Normalised cross-correlation (1/n) Σ a_k b_{k-l} / (σ_a σ_b) at the given lags (only those)."""
-    a = (a - a.mean()) / a.std()
-    b = (b - b.mean()) / b.std()
-    n = a.size
-    return np.array([np.dot(a[l:], b[:n - l]) if l >= 0 else np.dot(a[:n + l], b[-l:]) for l in lags]) / n
-
-
-def _xcorr_max(e: np.ndarray, u: np.ndarray, max_lag: int) -> float:
-    return float(np.max(np.abs(_lagged_correlation(e, u, np.arange(-max_lag, max_lag + 1)))))
-
-
-def ljung_box(residual: np.ndarray, max_lag: int = MAX_LAG) -> float:
-    """p-value of the Ljung-Box test that ``residual`` is white (same statistic as identify.validation)."""
-    n = residual.size
-    r = _lagged_correlation(residual, residual, np.arange(1, max_lag + 1))
-    q = n * (n + 2) * np.sum(r ** 2 / (n - np.arange(1, max_lag + 1)))
-    return float(stats.chi2.sf(q, max_lag))
-
-
 def _order_power(e: np.ndarray, angle: np.ndarray, orders: np.ndarray) -> np.ndarray:
     """|Σ_k e_k exp(-i o θ_k)|² / n for each order o; e (n, m), angle (n,) -> (n_orders, m)."""
     phase = np.outer(orders, angle)                     # (n_orders, n)
@@ -530,26 +569,46 @@ def _order_power(e: np.ndarray, angle: np.ndarray, orders: np.ndarray) -> np.nda
     return ((np.cos(phase) @ e) ** 2 + (np.sin(phase) @ e) ** 2) / e.shape[0]
 
 
-def localize(records: Sequence[ResidualRecord], channels: Sequence[str], model, theta: np.ndarray,
-             constants: np.ndarray | None = None, spread: np.ndarray | None = None) -> Localization:
-    """Localise the residual of ``model`` at full parameter vector ``theta`` over ``records``.
+@dataclass
+class _Energy:
+    """The systematic energy of a set of residual records, shared by the steps of :func:`localize`.
 
-    ``spread`` (m,) normalises each channel (default: RMS of the observed channel over all
-    records). Returns a :class:`Localization`.
-    """
-    records = list(records)
-    if not records:
-        raise LocalizationError("no residual record given")
-    channels = tuple(channels)
+    ``p_ok`` marks complete samples (n,); ``energy`` (n, m) the normalised systematic energy,
+    ``noise_units`` the same in noise variances; ``focus`` the channels that carry the gap,
+    ``density`` (n,) the gap² density over them and ``total`` its mean."""
+
+    records: list[ResidualRecord]
+    channels: tuple[str, ...]
+    spread: np.ndarray
+    sigma: np.ndarray
+    factors: Any
+    e_parts: list[np.ndarray]
+    masks_parts: list[dict[str, np.ndarray]]
+    deriv_num: np.ndarray
+    deriv_den: np.ndarray
+    ok: np.ndarray
+    n_ok: int
+    energy: np.ndarray
+    noise_units: np.ndarray
+    z_channel: np.ndarray
+    z_channel_limit: float
+    focus: np.ndarray
+    m_focus: int
+    density: np.ndarray
+    noise_focus: np.ndarray
+    total: float
+
+    @property
+    def m(self) -> int:
+        return len(self.channels)
+
+
+def _energy(records: list[ResidualRecord], channels: tuple[str, ...], model, theta: np.ndarray,
+            constants: np.ndarray, spread: np.ndarray) -> _Energy:
+    """Per-record lag products, regime masks and output derivatives, concatenated (lags never
+    cross a record boundary), and the systematic energy they give."""
     m = len(channels)
-    constants = model.constants_vector() if constants is None else np.asarray(constants, float)
-    observed_all = np.concatenate([r.observed for r in records])
-    if spread is None:
-        spread = np.sqrt(np.nanmean(observed_all ** 2, axis=0))
-    spread = np.where(np.asarray(spread) > 0, spread, 1.0)
-
-    # per-record products and masks, concatenated (lags never cross a record boundary)
-    e_parts, masks_parts, windows = [], [], {}
+    e_parts, masks_parts = [], []
     deriv_num, deriv_den = np.zeros(m), np.zeros(m)
     p_parts, sigma, factors = systematic_products([rec.residual for rec in records])
     for rec in records:
@@ -568,9 +627,6 @@ def localize(records: Sequence[ResidualRecord], channels: Sequence[str], model, 
         raise LocalizationError(f"only {n_ok} complete samples to localise the residual; give longer records")
     energy = np.where(ok[:, None], p, 0.0) / spread ** 2           # (n, m) normalised systematic energy
     noise_units = np.where(ok[:, None], p, 0.0) / sigma ** 2         # in noise variances
-    gap = float(np.sqrt(max(float(energy[ok].mean()), 0.0)))
-    z_total = float(noise_units.sum() / np.sqrt(n_ok * m * LAG_NORM))
-    channel_energy = energy[ok].mean(axis=0)
     z_channel = noise_units.sum(axis=0) / np.sqrt(n_ok * LAG_NORM)
     # regimes, windows and orders look at the channels that carry the gap, so that a gap in
     # one channel is not drowned by the noise of the others
@@ -578,16 +634,20 @@ def localize(records: Sequence[ResidualRecord], channels: Sequence[str], model, 
     focus = z_channel >= z_channel_limit
     if not focus.any():
         focus = np.ones(m, dtype=bool)
-    m_focus = int(focus.sum())
     density = energy[:, focus].mean(axis=1)                          # (n,) gap² density
-    noise_focus = noise_units[:, focus]
-    total = float(density[ok].mean())
+    return _Energy(records, channels, spread, sigma, factors, e_parts, masks_parts, deriv_num, deriv_den, ok, n_ok,
+                   energy, noise_units, z_channel, z_channel_limit, focus, int(focus.sum()), density,
+                   noise_units[:, focus], float(density[ok].mean()))
 
-    # --- channels -----------------------------------------------------------------------
+
+def _channel_rows(en: _Energy) -> list[ChannelLocalization]:
+    """Per-channel figures: systematic NRMSE, share, z, Ljung-Box p (Bonferroni over records),
+    bias z, input cross-correlation and the delay τ."""
+    m = en.m
     lb_p, bias_z, xcorr = np.ones(m), np.zeros(m), np.zeros(m)
     for j in range(m):
         pvals, biases, xcs = [], [], []
-        for rec, e in zip(records, e_parts):
+        for rec, e in zip(en.records, en.e_parts):
             valid = rec.valid
             runs = _runs(valid)
             if not runs:
@@ -595,27 +655,32 @@ def localize(records: Sequence[ResidualRecord], channels: Sequence[str], model, 
             start, stop = max(runs, key=lambda r: r[1] - r[0])
             ej = e[start:stop, j]
             if ej.size > 4 * MAX_LAG and np.std(ej) > 0:
-                pvals.append(ljung_box(ej))
+                pvals.append(ljung_box(ej, MAX_LAG))
                 for col in range(3):
                     u = rec.inputs[start:stop, col]
                     if np.std(u) > 0:
-                        xcs.append(_xcorr_max(ej, u, MAX_LAG))
+                        xcs.append(max_cross_correlation(ej, u, MAX_LAG))
             ev = e[valid, j]
-            biases.append(ev.mean() / (sigma[j] / np.sqrt(ev.size)))
+            biases.append(ev.mean() / (en.sigma[j] / np.sqrt(ev.size)))
         lb_p[j] = min(pvals) * len(pvals) if pvals else np.nan
         bias_z[j] = max(biases, key=abs) if biases else 0.0
         xcorr[j] = max(xcs) if xcs else 0.0
-    delay = np.where(deriv_den > 0, -deriv_num / np.where(deriv_den > 0, deriv_den, 1.0), 0.0)
+    den = en.deriv_den
+    delay = np.where(den > 0, -en.deriv_num / np.where(den > 0, den, 1.0), 0.0)
+    channel_energy = en.energy[en.ok].mean(axis=0)
     share_ch = channel_energy / np.sum(channel_energy) if np.sum(channel_energy) > 0 else np.zeros(m)
-    channel_rows = [ChannelLocalization(ch, float(np.sqrt(max(channel_energy[j], 0.0))),
-                                        float(share_ch[j]), float(z_channel[j]), float(min(lb_p[j], 1.0)),
-                                        float(bias_z[j]), float(xcorr[j]), float(delay[j]))
-                    for j, ch in enumerate(channels)]
+    return [ChannelLocalization(ch, float(np.sqrt(max(channel_energy[j], 0.0))),
+                                float(share_ch[j]), float(en.z_channel[j]), float(min(lb_p[j], 1.0)),
+                                float(bias_z[j]), float(xcorr[j]), float(delay[j]))
+            for j, ch in enumerate(en.channels)]
 
-    # --- residual tests (family-wise ALPHA, Bonferroni over channels) -----------------------
+
+def _residual_tests(en: _Energy, channel_rows: list[ChannelLocalization], z_total: float):
+    """Residual tests at family-wise level ALPHA (Bonferroni over channels): (reasons, tests)."""
+    m = en.m
     lb_limit = ALPHA / m
     bias_limit = stats.norm.isf(ALPHA / (2 * m))
-    xcorr_bound = stats.norm.isf(ALPHA / (2 * m * 3 * (2 * MAX_LAG + 1))) / np.sqrt(n_ok / len(records))
+    xcorr_bound = stats.norm.isf(ALPHA / (2 * m * 3 * (2 * MAX_LAG + 1))) / np.sqrt(en.n_ok / len(en.records))
     z_limit = stats.norm.isf(ALPHA)
     reasons = []
     bad_lb = [c.channel for c in channel_rows if c.ljung_box_p < lb_limit]
@@ -629,72 +694,75 @@ def localize(records: Sequence[ResidualRecord], channels: Sequence[str], model, 
         reasons.append(f"correlated with the inputs in {', '.join(bad_xc)}")
     if z_total > z_limit:
         reasons.append(f"systematic energy z = {z_total:.1f}")
-    if factors.n_factors:
-        reasons.append(f"{factors.n_factors} error factor(s) common to several channels")
-    bad_z = [c.channel for c in channel_rows if c.z > z_channel_limit]
+    if en.factors.n_factors:
+        reasons.append(f"{en.factors.n_factors} error factor(s) common to several channels")
+    bad_z = [c.channel for c in channel_rows if c.z > en.z_channel_limit]
     if bad_z and z_total <= z_limit:
         reasons.append(f"systematic energy in {', '.join(bad_z)}")
-    tests = {"alpha": ALPHA, "common_factors": factors.n_factors, "ljung_box_limit": lb_limit, "bias_limit": float(bias_limit),
-             "xcorr_bound": float(xcorr_bound), "z_limit": float(z_limit),
+    tests = {"alpha": ALPHA, "common_factors": en.factors.n_factors, "ljung_box_limit": lb_limit,
+             "bias_limit": float(bias_limit), "xcorr_bound": float(xcorr_bound), "z_limit": float(z_limit),
              "non_white": bad_lb, "biased": bad_bias, "input_correlated": bad_xc}
+    return reasons, tests
 
-    # --- mask regimes -------------------------------------------------------------------
-    masks = {k: np.concatenate([mp[k] for mp in masks_parts]) for k in masks_parts[0]}
-    regimes = []
 
-    def regime_row(name, mask, detail=""):
-        sel = mask & ok
-        n_sel = int(sel.sum())
-        fraction = n_sel / n_ok
-        if n_sel == 0:
-            return RegimeLocalization(name, 0.0, 0.0, float("nan"), 0.0, False, detail or "no sample")
-        share = float(density[sel].sum() / density[ok].sum()) if total > 0 else 0.0
-        z = float(noise_focus[sel].sum() / np.sqrt(n_sel * m_focus * LAG_NORM))
-        enrichment = share / fraction
-        within = float(np.sqrt(max(float(energy[sel].mean()), 0.0)))
-        return RegimeLocalization(name, float(fraction), share, float(enrichment), z,
-                                  bool(z >= Z_REGIME and enrichment >= MIN_ENRICHMENT and total > 0), detail,
-                                  within)
+def _regime_row(en: _Energy, name: str, mask: np.ndarray, detail: str = "") -> RegimeLocalization:
+    ok, density, total = en.ok, en.density, en.total
+    sel = mask & ok
+    n_sel = int(sel.sum())
+    fraction = n_sel / en.n_ok
+    if n_sel == 0:
+        return RegimeLocalization(name, 0.0, 0.0, float("nan"), 0.0, False, detail or "no sample")
+    share = float(density[sel].sum() / density[ok].sum()) if total > 0 else 0.0
+    z = float(en.noise_focus[sel].sum() / np.sqrt(n_sel * en.m_focus * LAG_NORM))
+    enrichment = share / fraction
+    within = float(np.sqrt(max(float(en.energy[sel].mean()), 0.0)))
+    return RegimeLocalization(name, float(fraction), share, float(enrichment), z,
+                              bool(z >= Z_REGIME and enrichment >= MIN_ENRICHMENT and total > 0), detail, within)
 
-    for name in MASK_REGIMES:
-        regimes.append(regime_row(name, masks[name]))
-    ext, ret = regime_row("extend", masks["extend"]), regime_row("retract", masks["retract"])
+
+def _mask_regimes(en: _Energy) -> list[RegimeLocalization]:
+    """The mask regimes and the direction regime (extension against retraction)."""
+    masks = {k: np.concatenate([mp[k] for mp in en.masks_parts]) for k in en.masks_parts[0]}
+    regimes = [_regime_row(en, name, masks[name]) for name in MASK_REGIMES]
+    ext, ret = _regime_row(en, "extend", masks["extend"]), _regime_row(en, "retract", masks["retract"])
     hi, lo = (ext, ret) if (ext.enrichment if np.isfinite(ext.enrichment) else 0) >= \
         (ret.enrichment if np.isfinite(ret.enrichment) else 0) else (ret, ext)
     lo_enrich = lo.enrichment if np.isfinite(lo.enrichment) else 0.0
     direction_holds = bool(hi.z >= Z_REGIME and hi.share > 0
-                           and hi.enrichment >= DIRECTION_RATIO * max(lo_enrich, 0.0) and total > 0
+                           and hi.enrichment >= DIRECTION_RATIO * max(lo_enrich, 0.0) and en.total > 0
                            and np.isfinite(lo.enrichment))
     regimes.append(RegimeLocalization("direction", hi.fraction, hi.share, hi.enrichment, hi.z, direction_holds,
                                       f"{hi.name} {hi.enrichment:.2f} vs {lo.name} {lo_enrich:.2f}",
                                       hi.systematic_nrmse))
+    return regimes
 
-    # --- delay: residual along the output derivative -------------------------------------
-    delay_energy = np.where(deriv_den > 0, deriv_num ** 2 / np.where(deriv_den > 0, deriv_den, 1.0), 0.0)
-    delay_share = (min(float(np.sum((delay_energy / spread ** 2)[focus]) / m_focus / n_ok / total), 1.0)
+
+def _delay_regime(en: _Energy, channel_rows: list[ChannelLocalization]) -> RegimeLocalization:
+    """The residual along the output derivative (e ≈ -τ dy/dt)."""
+    num, den, total, focus = en.deriv_num, en.deriv_den, en.total, en.focus
+    delay_energy = np.where(den > 0, num ** 2 / np.where(den > 0, den, 1.0), 0.0)
+    delay_share = (min(float(np.sum((delay_energy / en.spread ** 2)[focus]) / en.m_focus / en.n_ok / total), 1.0)
                    if total > 0 else 0.0)
-    chi2 = float(np.sum((delay_energy / sigma ** 2)[focus]))
-    z_delay = float(stats.norm.isf(max(stats.chi2.sf(chi2, m_focus), 1e-300)))
+    chi2 = float(np.sum((delay_energy / en.sigma ** 2)[focus]))
+    z_delay = float(stats.norm.isf(max(stats.chi2.sf(chi2, en.m_focus), 1e-300)))
     taus = ", ".join(f"{c.channel} {1e3 * c.delay_s:.1f} ms" for c in sorted(channel_rows, key=lambda c: -abs(c.z))[:3])
-    regimes.append(RegimeLocalization("delay", 1.0, delay_share, delay_share, z_delay,
-                                      bool(z_delay >= Z_REGIME and delay_share >= MIN_SHARE and total > 0),
-                                      f"tau: {taus}"))
+    return RegimeLocalization("delay", 1.0, delay_share, delay_share, z_delay,
+                              bool(z_delay >= Z_REGIME and delay_share >= MIN_SHARE and total > 0), f"tau: {taus}")
 
-    # --- periodic: order tracking on the model's motor angle -------------------------------
-    peaks: list[OrderPeak] = []
-    periodic_energy = 0.0
-    n_tests = 0
-    candidates = []
-    for rec, e, mp in zip(records, e_parts, masks_parts):
+
+def _order_candidates(en: _Energy, model) -> tuple[list[tuple], int]:
+    """Residual power at harmonics of every shaft (order tracking on the model's motor angle)
+    against the noise and the neighbouring orders: (candidate peaks, number of tests)."""
+    n_tests, candidates = 0, []
+    for rec, e, mp in zip(en.records, en.e_parts, en.masks_parts):
         dt = float(rec.time[1] - rec.time[0])
         omega = _output(model, rec.outputs, "Omega")
         angle = np.concatenate([[0.0], np.cumsum(0.5 * (omega[1:] + omega[:-1]) * dt)])
         use = mp["moving"] & rec.valid
         if use.sum() < 200:
             continue
-        ratios = shaft_ratios(model, rec.outputs, use)
         nyquist = np.pi / dt
-        for shaft, ratio in ratios.items():
+        for shaft, ratio in shaft_ratios(model, rec.outputs, use).items():
             for h in range(1, HARMONICS + 1):
                 order = h * ratio
                 sel = use & (order * np.abs(omega) < 0.9 * nyquist)
@@ -703,53 +771,86 @@ def localize(records: Sequence[ResidualRecord], channels: Sequence[str], model, 
                     continue
                 neighbours = order + np.array(NEIGHBOUR_OFFSETS) * ratio
                 power = _order_power(e[sel], angle[sel], np.concatenate([[order], neighbours]))
-                ratio_noise = power[0] / sigma ** 2
+                ratio_noise = power[0] / en.sigma ** 2
                 ratio_nb = power[0] / np.maximum(np.median(power[1:], axis=0), 1e-300)
-                n_tests += m
+                n_tests += en.m
                 candidates.append((rec.name, shaft, h, order, ratio_noise, ratio_nb, power[0], sel.sum(), rec.time.size))
+    return candidates, n_tests
+
+
+def _periodic_regime(en: _Energy, model) -> tuple[RegimeLocalization, list[OrderPeak]]:
+    """The periodic regime: significant order peaks (above the noise and the neighbours)."""
+    candidates, n_tests = _order_candidates(en, model)
+    total, peaks, periodic_energy = en.total, [], 0.0
     threshold = np.log(max(n_tests, 1) / ALPHA)
     seen = set()
     for name, shaft, h, order, ratio_noise, ratio_nb, power, n_sel, n_rec in candidates:
-        for j in range(m):
+        for j in range(en.m):
             key = (name, j, round(order, 6))
-            if key in seen or not focus[j]:
+            if key in seen or not en.focus[j]:
                 continue
             if ratio_noise[j] > threshold and ratio_nb[j] > PEAK_TO_NEIGHBOURS:
                 seen.add(key)
                 # a sinusoid of amplitude A gives power A² n/4, i.e. energy A²/2 on n samples
-                e_density = 2.0 * power[j] / n_ok / spread[j] ** 2 / m_focus
+                e_density = 2.0 * power[j] / en.n_ok / en.spread[j] ** 2 / en.m_focus
                 periodic_energy += e_density
-                peaks.append(OrderPeak(channels[j], shaft, h, float(order), float(ratio_noise[j]),
+                peaks.append(OrderPeak(en.channels[j], shaft, h, float(order), float(ratio_noise[j]),
                                        float(ratio_nb[j]), float(e_density / total) if total > 0 else 0.0))
     peaks.sort(key=lambda pk: -pk.power_ratio)
     periodic_share = min(float(periodic_energy / total), 1.0) if total > 0 else 0.0
     best = peaks[0] if peaks else None
-    regimes.append(RegimeLocalization(
+    return RegimeLocalization(
         "periodic", 1.0, periodic_share, periodic_share,
         float(stats.norm.isf(max(np.exp(-best.power_ratio) * max(n_tests, 1), 1e-300))) if best else 0.0,
         bool(best is not None and periodic_share >= MIN_SHARE and total > 0),
-        f"{best.channel}: harmonic {best.harmonic} of {best.shaft}" if best else "no peak"))
+        f"{best.channel}: harmonic {best.harmonic} of {best.shaft}" if best else "no peak"), peaks
 
-    # --- time windows -------------------------------------------------------------------
-    offset = 0
-    for rec in records:
+
+def _windows(en: _Energy) -> dict[str, dict[str, list[float]]]:
+    """Systematic NRMSE, z and mean flap command per ``WINDOW_S`` window of every record."""
+    windows, offset = {}, 0
+    for rec in en.records:
         n = rec.time.size
         dt = float(rec.time[1] - rec.time[0])
         width = max(int(round(WINDOW_S / dt)), LAGS + 2)
         centres, values, zs, phis = [], [], [], []
         for start in range(0, n, width):
             sl = slice(offset + start, offset + min(start + width, n))
-            sel = ok[sl]
+            sel = en.ok[sl]
             if sel.sum() < width // 2:
                 continue
             centres.append(float(rec.time[start: start + width].mean()))
-            dens = density[sl][sel].mean()
+            dens = en.density[sl][sel].mean()
             values.append(float(np.sqrt(max(dens, 0.0))))
-            zs.append(float(noise_focus[sl][sel].sum() / np.sqrt(sel.sum() * m_focus * LAG_NORM)))
+            zs.append(float(en.noise_focus[sl][sel].sum() / np.sqrt(sel.sum() * en.m_focus * LAG_NORM)))
             phis.append(float(np.degrees(rec.inputs[start: start + width, 0].mean())))
         windows[rec.name] = {"time": centres, "systematic_nrmse": values, "z": zs, "phi_r_deg": phis}
         offset += n
+    return windows
 
-    structured = bool(reasons)
-    tests["focus_channels"] = [ch for ch, f in zip(channels, focus) if f]
-    return Localization(channel_rows, regimes, peaks, windows, gap, z_total, tests, structured, reasons)
+
+def localize(records: Sequence[ResidualRecord], channels: Sequence[str], model, theta: np.ndarray,
+             constants: np.ndarray | None = None, spread: np.ndarray | None = None) -> Localization:
+    """Localise the residual of ``model`` at full parameter vector ``theta`` over ``records``.
+
+    ``spread`` (m,) normalises each channel (default: RMS of the observed channel over all
+    records). Returns a :class:`Localization`.
+    """
+    records = list(records)
+    if not records:
+        raise LocalizationError("no residual record given")
+    channels = tuple(channels)
+    constants = model.constants_vector() if constants is None else np.asarray(constants, float)
+    observed_all = np.concatenate([r.observed for r in records])
+    if spread is None:
+        spread = np.sqrt(np.nanmean(observed_all ** 2, axis=0))
+    spread = np.where(np.asarray(spread) > 0, spread, 1.0)
+    en = _energy(records, channels, model, theta, constants, spread)
+    gap = float(np.sqrt(max(float(en.energy[en.ok].mean()), 0.0)))
+    z_total = float(en.noise_units.sum() / np.sqrt(en.n_ok * en.m * LAG_NORM))
+    channel_rows = _channel_rows(en)
+    reasons, tests = _residual_tests(en, channel_rows, z_total)
+    periodic, peaks = _periodic_regime(en, model)
+    regimes = _mask_regimes(en) + [_delay_regime(en, channel_rows), periodic]
+    tests["focus_channels"] = [ch for ch, f in zip(channels, en.focus) if f]
+    return Localization(channel_rows, regimes, peaks, _windows(en), gap, z_total, tests, bool(reasons), reasons)

@@ -9,29 +9,29 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 
-def _force_residual(candidate, validation) -> np.ndarray:
-    from ..emps_report import simulate_record
+def _force_residual(effects, estimate: dict, validation) -> np.ndarray:
+    from ..emps_benchmark import measured_force, simulate_record
     from ..models import get_model
 
-    model = get_model("emps").with_effects(list(candidate.effects))
-    theta = model.parameters.vector({n: p["estimate"] for n, p in candidate.parameters.items()
-                                     if n in model.parameters})
+    model = get_model("emps").with_effects(list(effects))
+    theta = model.parameters.vector({n: v for n, v in estimate.items() if n in model.parameters})
     y = simulate_record(model, theta, validation)
-    gtau = float(validation.attrs.get("gtau", 35.15))
-    return gtau * validation["vir"] - y[:, model.outputs.index("force")]
+    return measured_force(validation) - y[:, model.outputs.index("force")]
 
 
 def gap_figure(result, validation):
     """Residual force [N] on the validation record before (nominal ML) and after (selected
-    effects), with the reference position on a grey right axis; right panel: RMS by regime."""
-    from ..emps_report import regime_masks
+    effects) of a :class:`~ema_uq.gap.GapResult`, with the reference position on a grey right
+    axis; right panel: RMS by regime."""
+    from ..emps_benchmark import regime_masks
 
-    before = _force_residual(result.nominal, validation)
-    after = _force_residual(result.final, validation)
+    before = _force_residual([], result.nominal["estimate"], validation)
+    after = (_force_residual(result.after_effects, result.after.estimate, validation) if result.after is not None
+             else before)
     t = validation.time
     fig, (ax, bx) = plt.subplots(1, 2, figsize=(12, 3.6), gridspec_kw={"width_ratios": [3, 1]})
     ax.plot(t, before, lw=0.5, color="tab:red", label="nominal model")
-    ax.plot(t, after, lw=0.5, color="tab:blue", label=" + ".join(result.selected) or "nominal")
+    ax.plot(t, after, lw=0.5, color="tab:blue", label=" + ".join(result.after_effects) or "nominal")
     ax.set_xlabel("time [s] (validation record)")
     ax.set_ylabel("force residual [N]")
     ax.grid(alpha=0.3)

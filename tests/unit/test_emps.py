@@ -6,12 +6,15 @@ the published numbers come from the benchmark description (Janot, Gautier, Bruno
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from ema_uq import Experiment, Measurement, get_model, io, simulate_batch
-from ema_uq.emps_report import (emps_comparison, emps_gap, fit_emps, published_alignment_force_error,
-                                simulation_errors)
+from ema_uq.emps_benchmark import (EMPS_STRATEGY, emps_comparison, fit_emps, published_alignment_force_error,
+                                   simulation_errors)
+from ema_uq.gap import diagnose
 from ema_uq.identify import FitProblem, estimate
 from ema_uq.models import emps
 from ema_uq.study import load_study
@@ -336,7 +339,7 @@ def test_corrected_model_matches_published_asymmetric_variant(estimation, nomina
 
 
 def emps_report_published():
-    from ema_uq.emps_report import PUBLISHED_ASYMMETRIC
+    from ema_uq.emps_benchmark import PUBLISHED_ASYMMETRIC
 
     return PUBLISHED_ASYMMETRIC
 
@@ -344,29 +347,42 @@ def emps_report_published():
 def test_gap_names_the_loop_delay(estimation, validation):
     """Of a delay effect and Stribeck friction, the diagnosis keeps the actuation delay (at its
     bound: no unit delay) and the validation force error shrinks from 9.07 % to 5.6 %."""
-    gap = emps_gap(estimation, validation, candidates=["actuation_delay", "stribeck"], max_effects=1)
+    settings = replace(EMPS_STRATEGY.settings, max_effects=1)
+    gap = diagnose([estimation], [validation], candidates=["actuation_delay", "stribeck"], settings=settings)
     assert gap.verdict == "effect" and gap.effect == "actuation_delay"
-    assert gap.nominal.gap_after == pytest.approx(9.07, abs=0.05)
-    assert gap.final.gap_after == pytest.approx(5.61, abs=0.1)
+    assert gap.gap["before"] == pytest.approx(9.07, abs=0.05)
+    assert gap.gap["after"] == pytest.approx(5.61, abs=0.1)
     ranking = gap.to_json()["ranking"]
     assert ranking[0]["effect"] == "actuation_delay" and ranking[0]["shrink"] > 0.35
     assert ranking[1]["effect"] == "stribeck" and abs(ranking[1]["shrink"]) < 0.01
+
+
+def test_fault_diagnosis_holds_the_base_at_a_reference_fit(estimation, validation, nominal_fit):
+    """Fault-diagnosis mode: the base parameters are held at a reference fit (here the nominal
+    ML fit on the same record), only the effect's parameter is fitted; the delay is still named."""
+    strategy = EMPS_STRATEGY.with_reference(nominal_fit.as_dict())
+    settings = replace(strategy.settings, max_effects=1)
+    gap = diagnose([estimation], [validation], candidates=["actuation_delay"], settings=settings, strategy=strategy)
+    assert gap.nominal["estimate"] == nominal_fit.as_dict() and gap.nominal["iterations"] == 0
+    assert gap.ranking[0].free_parameters == ["actuation_delay_tau"]
+    assert gap.verdict == "effect" and gap.effect == "actuation_delay"
+    assert gap.gap["before"] == pytest.approx(9.07, abs=0.05)
 
 
 @pytest.mark.slow
 def test_full_gap_diagnosis(estimation, validation):
     """All five effects, two rounds: actuation delay then asymmetric friction, validation force
     error 9.07 % -> 4.85 %."""
-    gap = emps_gap(estimation, validation, max_effects=3)
+    gap = diagnose([estimation], [validation], settings=replace(EMPS_STRATEGY.settings, max_effects=3))
     assert gap.selected == ["actuation_delay", "asymmetric_friction"]
-    assert gap.final.gap_after == pytest.approx(4.85, abs=0.1)
+    assert gap.gap["after"] == pytest.approx(4.85, abs=0.1)
 
 
 @pytest.mark.slow
 def test_posterior_converges(estimation, nominal_fit):
     """emcee on the nominal model: R-hat < 1.01 and bulk/tail ESS >= 400 on M, Fv, Fc, offset."""
     from ema_uq import bayes
-    from ema_uq.emps_report import emps_problem
+    from ema_uq.emps_benchmark import emps_problem
 
     posterior = bayes.sample(emps_problem([estimation]), nominal_fit, seed=1)
     table = posterior.summary()

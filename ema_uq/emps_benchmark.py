@@ -1,6 +1,8 @@
-"""EMPS numbers for the report: ML estimates beside the published IDIM-LS values, closed-loop
-simulation errors by the benchmark's own definition, and the gap diagnosis of the rig's
-unmodelled effects (``ema_uq.models.emps.EFFECTS``).
+"""The EMPS benchmark: ML estimates beside the published IDIM-LS values, closed-loop
+simulation errors by the benchmark's own definition, and how the one gap diagnosis
+(:func:`ema_uq.gap.diagnose`) treats the rig (:data:`EMPS_STRATEGY`: its channels, the
+record's own gains and initial state, the validation force error as the gap metric, the
+force residual by regime as the localisation).
 
 Everything here is numerics on :class:`~ema_uq.experiments.Measurement` objects (the files
 are read by :func:`ema_uq.io.read_emps`); results are documented objects with
@@ -18,7 +20,7 @@ Why ML output error and the published IDIM-LS differ: IDIM-LS regresses the logg
 filtered, differentiated measured position (inverse dynamics, no simulation, the loop delay
 never enters), while the output-error fit simulates the closed loop from the reference and
 matches qm and vir; its estimates absorb every structural error of the simulated loop, above
-all the loop delay (see :func:`emps_gap`). The Cramér-Rao bounds assume white residuals; the
+all the loop delay (see the gap diagnosis). The Cramér-Rao bounds assume white residuals; the
 real residuals are strongly coloured, so both published and ML standard deviations are far
 below the spread between methods.
 """
@@ -31,11 +33,13 @@ from typing import Any, Sequence
 import numpy as np
 
 from .experiments import Measurement
-from .identify import FitProblem, FitResult, IdentificationError, Settings, estimate
-from .identify.problem import covariance, log_det
+from .gap.localize import RegimeRms
+from .gap.strategy import DiagnosisSettings, DiagnosisStrategy, Thresholds
+from .identify import FitProblem, FitResult, Settings, estimate
 from .models import Model, get_model
 from .models import emps
 from .simulate import simulate_batch
+from .statistics import speed_regimes
 
 #: Published asymmetric-friction IDIM-LS variant (``Script_IDIM_LS_Asym_Fric.m``, no offset).
 PUBLISHED_ASYMMETRIC = {"M": 95.1540, "Fv+": 166.7061, "Fc+": 20.1440, "Fv-": 240.4236, "Fc-": 20.6277,
@@ -44,8 +48,6 @@ BORDER = 49              # samples dropped at the start (MATLAB n_border = 50)
 FILTER_ORDER = 4
 FILTER_HZ = 100.0
 DEFAULT_CHANNELS = ("qm", "vir")
-BIC_MIN = 10.0           # an effect must lower BIC by more than this ...
-SHRINK_MIN = 0.05        # ... and shrink the validation force error by at least 5 % to be selected
 
 
 # --------------------------------------------------------------------------------------
@@ -73,6 +75,13 @@ def filtered_motion(measurement: Measurement) -> dict[str, np.ndarray]:
     return {"position": q, "velocity": qd, "acceleration": _diffcent(qd, dt)}
 
 
+def measured_force(measurement: Measurement) -> np.ndarray:
+    """Force [N] of a record: gτ·vir (the record's own gτ), or its ``force`` channel."""
+    if "vir" not in measurement.channels:
+        return measurement["force"]
+    return float(measurement.attrs.get("gtau", emps.CONSTANTS["gtau"].nominal)) * measurement["vir"]
+
+
 def simulate_record(model: Model, theta: np.ndarray, measurement: Measurement) -> np.ndarray:
     """Outputs (n_samples, 5) of one full parameter vector on one EMPS record, with the
     record's own gains and initial state."""
@@ -90,8 +99,7 @@ def simulation_errors(model: Model, theta: np.ndarray, measurement: Measurement,
     motion = filtered_motion(measurement)
     out = model.outputs
     dt = measurement.experiment.dt
-    gtau = float(measurement.attrs.get("gtau", emps.CONSTANTS["gtau"].nominal))
-    force = gtau * measurement["vir"] if "vir" in measurement.channels else measurement["force"]
+    force = measured_force(measurement)
     force_sim = y[:, out.index("force")]
     return {
         "position": _relative_error(motion["position"], y[:, out.index("qm")]),
@@ -302,291 +310,88 @@ def _effects_of(names: Sequence[str]) -> list[str]:
     return found
 
 
+
+
 # --------------------------------------------------------------------------------------
-# gap diagnosis for EMPS
+# the gap diagnosis of the rig (one procedure: ema_uq.gap.diagnose)
 # --------------------------------------------------------------------------------------
-@dataclass
-class EmpsCandidate:
-    """One refitted model: the effects switched on, the one just added, and its figures.
-
-    ``delta_bic`` = BIC(reference) - BIC(this) on the estimation record (positive = better;
-    BIC = N log det R + k ln N), ``gap_before``/``gap_after`` = validation force error [%]
-    (benchmark definition) of the reference and of this model, ``shrink`` = 1 - after/before,
-    ``validation_log_det_r``: log det R of the validation residuals in the fitted channels.
-    """
-
-    effects: tuple[str, ...]
-    added: str | None
-    n_parameters: int
-    log_det_r: float
-    delta_bic: float
-    gap_before: float
-    gap_after: float
-    shrink: float
-    validation_log_det_r: float
-    validation_errors: dict[str, float]
-    parameters: dict[str, dict[str, Any]]
-    converged: bool
-    message: str = ""
-
-    def to_json(self) -> dict[str, Any]:
-        return {"effects": list(self.effects), "effect": self.added, "n_parameters": self.n_parameters,
-                "log_det_R": self.log_det_r, "delta_bic": self.delta_bic, "score": self.delta_bic,
-                "gap_before": self.gap_before, "gap_after": self.gap_after, "shrink": self.shrink,
-                "validation_log_det_R": self.validation_log_det_r, "validation_errors": self.validation_errors,
-                "parameters": self.parameters, "converged": self.converged, "message": self.message}
-
-
-@dataclass
-class EmpsGapResult:
-    """Greedy forward selection of EMPS effects.
-
-    ``rounds[r]`` ranks every remaining effect added to the model selected so far (best
-    first); ``selected`` the effects kept (each lowered BIC by > ``BIC_MIN`` and shrank the
-    validation force error by ≥ ``SHRINK_MIN``); ``effect`` the first selected (the one that
-    explains most of the gap); ``gap`` the validation force error [%] of the nominal ML model
-    and of the final model; ``where`` the regimes where the nominal validation force residual
-    is largest (RMS ratio to the overall RMS).
-    """
-
-    verdict: str
-    effect: str | None
-    selected: list[str]
-    nominal: EmpsCandidate
-    rounds: list[list[EmpsCandidate]]
-    final: EmpsCandidate
-    where: dict[str, Any]
-    regime_rms: dict[str, dict[str, float]]
-    wall_time_s: float = 0.0
-
-    def summary(self) -> str:
-        lines = [f"[[EMPS gap diagnosis]] verdict {self.verdict}: {self.effect or '-'}; selected "
-                 f"{' + '.join(self.selected) or 'none'}; validation force error "
-                 f"{self.nominal.gap_after:.3f} % -> {self.final.gap_after:.3f} % "
-                 f"(shrink {1 - self.final.gap_after / self.nominal.gap_after:.1%}), {self.wall_time_s:.0f} s"]
-        for r, candidates in enumerate(self.rounds, 1):
-            base = " + ".join(candidates[0].effects[:-1]) if candidates else ""
-            lines.append(f"  round {r} (added to: {base or 'nominal'}):")
-            lines.append(f"    {'effect':<20} {'dBIC':>10} {'val. force %':>13} {'shrink':>7}  parameters")
-            for c in candidates:
-                pars = ", ".join(f"{k}={v['estimate']:.4g}{' (at bound)' if v['at_bound'] else ''}"
-                                 for k, v in c.parameters.items() if k not in emps.PARAMETERS)
-                lines.append(f"    {c.added:<20} {c.delta_bic:>10.1f} {c.gap_after:>13.3f} {c.shrink:>7.1%}  {pars}")
-        lines.append("  validation force residual RMS by regime [N] (nominal -> final): " + ", ".join(
-            f"{k} {v['nominal']:.1f} -> {v['final']:.1f}" for k, v in self.regime_rms.items()))
-        return "\n".join(lines)
-
-    def to_json(self) -> dict[str, Any]:
-        """GAP.json layout of INTERFACES.md (``ranking`` = the first round) plus the EMPS details."""
-        first = self.rounds[0] if self.rounds else []
-        return {
-            "concept": "emps", "verdict": self.verdict, "effect": self.effect,
-            "ranking": [{"effect": c.added, "score": c.delta_bic, "gap_before": c.gap_before,
-                         "gap_after": c.gap_after, "shrink": c.shrink} for c in first],
-            "where": self.where,
-            "gap": {"metric": "validation force error, % (benchmark definition)",
-                    "before": self.nominal.gap_after, "after": self.final.gap_after,
-                    "shrink": 1.0 - self.final.gap_after / self.nominal.gap_after},
-            "selected": self.selected,
-            "nominal": self.nominal.to_json(), "final": self.final.to_json(),
-            "rounds": [[c.to_json() for c in rnd] for rnd in self.rounds],
-            "regime_rms": self.regime_rms, "wall_time_s": self.wall_time_s,
-        }
-
-
-def _start_grid(model: Model, base_values: dict[str, float], added: str) -> np.ndarray:
-    """Start vectors: base (and earlier effects) at their fitted values, the new effect's
-    parameters at 0.3, 1 and 3 times its start (every combination)."""
-    params = model.parameters
-    effect = emps.EFFECTS[added]
-    vec = params.vector({**{k: v for k, v in base_values.items() if k in params}, **effect.start})
-    names = list(effect.start)
-    grids = np.meshgrid(*[[vec[params.index(n)] * f for f in (0.3, 1.0, 3.0)] for n in names], indexing="ij")
-    thetas = np.repeat(vec[None], grids[0].size, axis=0)
-    for n, g in zip(names, grids):
-        thetas[:, params.index(n)] = g.ravel()
-    return np.unique(np.clip(thetas, params.lower, params.upper), axis=0)
-
-
-def _candidate(model: Model, fit: FitResult, added: str | None, reference: EmpsCandidate | None,
-               validation: Measurement, channels: Sequence[str]) -> EmpsCandidate:
-    y = simulate_record(model, fit.estimate, validation)
-    errors = simulation_errors(model, fit.estimate, validation, outputs=y)
-    idx = model.output_index(channels)
-    residual = validation.select(channels).values - y[:, idx]
-    ok = np.all(np.isfinite(residual), axis=1)
-    val_log_det = log_det(covariance(residual[ok]))
-    n, k = fit.n_samples, int(np.sum(fit.free))
-    bic = n * fit.log_det_r + k * math.log(n)
-    if reference is None:
-        delta_bic, before = 0.0, errors["force"]
-    else:
-        ref_bic = n * reference.log_det_r + reference.n_parameters * math.log(n)
-        delta_bic, before = ref_bic - bic, reference.gap_after
-    params = {name: {"estimate": float(fit.estimate[i]), "std": float(fit.std[i]),
-                     "unit": model.parameters[name].unit, "at_bound": name in fit.at_bounds}
-              for i, name in enumerate(fit.names)}
-    return EmpsCandidate(tuple(model.effects), added, k, float(fit.log_det_r), float(delta_bic), float(before),
-                         float(errors["force"]), float(1.0 - errors["force"] / before), float(val_log_det),
-                         errors, params, bool(fit.converged), fit.message)
-
-
 def regime_masks(measurement: Measurement) -> dict[str, np.ndarray]:
     """Sample masks from the reference: ``constant_speed``, ``accelerating`` (|q̈g| > 0.1 max),
-    ``low_speed`` (|q̇g| < 5 % of max, reversals and dwell), ``forward``/``backward`` motion
+    ``low_speed`` (|q̇g| ≤ 5 % of max, reversals and dwell), ``forward``/``backward`` motion
     and ``pulse_edges`` (±20 ms around a pulse edge, validation record only)."""
     dt = measurement.experiment.dt
     qg = measurement["qg"]
-    v = np.gradient(qg, dt)
-    a = np.gradient(v, dt)
-    low = np.abs(v) < 0.05 * np.max(np.abs(v))
-    accel = np.abs(a) > 0.1 * np.max(np.abs(a))
+    speed = speed_regimes(np.gradient(qg, dt), dt, low_fraction=0.05, acceleration_fraction=0.1)
+    low, accel = speed["low_speed"], speed["accelerating"]
     masks = {"constant_speed": ~low & ~accel, "accelerating": accel, "low_speed": low,
-             "forward": v > 0.05 * np.max(np.abs(v)), "backward": v < -0.05 * np.max(np.abs(v))}
+             "forward": speed["forward"], "backward": speed["backward"]}
     pulse = measurement.experiment.inputs.get("pulse")
     if pulse is not None and np.any(pulse):
-        edges = np.flatnonzero(np.diff(pulse) != 0)
         near = np.zeros(qg.size, dtype=bool)
         reach = int(round(0.02 / dt))
-        for e in edges:
+        for e in np.flatnonzero(np.diff(pulse) != 0):
             near[max(e - reach, 0): e + reach + 2] = True
         masks["pulse_edges"] = near
     return masks
 
 
-def _robust_estimate(problem: FitProblem, method: str, start: np.ndarray, settings: Settings) -> FitResult:
-    """``estimate`` with a Levenberg-Marquardt retry: an effect parameter driven to a bound where
-    another one loses its effect (Stribeck Fs = 0 leaves v_s free) makes the Gauss-Newton
-    matrix singular, which LM's damping survives."""
-    try:
-        return estimate(problem, method=method, start=start, settings=settings)
-    except (IdentificationError, np.linalg.LinAlgError):
-        if method == "lm":
-            raise
-        return estimate(problem, method="lm", start=start, settings=settings)
+def _force_residuals(records, measurements, model) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(measured force, force residual) [N] of each record from sample ``BORDER`` on."""
+    out = []
+    for record, m in zip(records, measurements):
+        force = measured_force(m)
+        out.append((force[BORDER:], (force - record.outputs[:, model.outputs.index("force")])[BORDER:]))
+    return out
 
 
-def emps_gap(estimation: Measurement, validation: Measurement, *, candidates: Sequence[str] | None = None,
-             max_effects: int = 2, channels: Sequence[str] = DEFAULT_CHANNELS, method: str = "gn",
-             settings: Settings = Settings(), progress=None) -> EmpsGapResult:
-    """Which of the rig's effects explains the gap of the nominal model, and by how much.
+@dataclass(frozen=True)
+class ForceError:
+    """EMPS gap metric: the relative force error [%] of the benchmark (module docstring) over
+    the held-out records (complete samples); significant above ``significant_percent``."""
 
-    Nominal ML fit on ``estimation``; then greedy forward selection: every remaining effect is
-    added to the model selected so far and refitted by ML (start: the previous estimate and
-    the best of a small grid of effect starts, evaluated in one batched call); the effect with
-    the largest BIC decrease is kept if it also shrinks the validation force error by at least
-    ``SHRINK_MIN``; at most ``max_effects`` rounds. ``validation`` is never fitted.
-    """
-    import time
+    significant_percent: float = 1.0
+    description: str = "validation force error, % (benchmark definition)"
 
-    t0 = time.perf_counter()
-    say = progress or (lambda _line: None)
-    base = get_model("emps")
-    pool = list(emps.EFFECTS if candidates is None else candidates)
-    unknown = [c for c in pool if c not in emps.EFFECTS]
-    if unknown:
-        raise ValueError(f"unknown EMPS effect(s) {', '.join(unknown)}; choose from {', '.join(emps.EFFECTS)}")
-    nominal_fit = fit_emps(estimation, base, method=method, channels=channels, settings=settings)
-    nominal = _candidate(base, nominal_fit, None, None, validation, channels)
-    say(f"nominal: log det R {nominal.log_det_r:.5g}, validation force error {nominal.gap_after:.3f} %")
-    selected: list[str] = []
-    current, current_fit, current_model = nominal, nominal_fit, base
-    rounds: list[list[EmpsCandidate]] = []
-    for _ in range(max_effects):
-        remaining = [c for c in pool if c not in selected]
-        if not remaining:
-            break
-        ranked = []
-        fits = {}
-        for name in remaining:
-            model = base.with_effects(selected + [name])
-            problem = emps_problem([estimation], model, channels)
-            grid = _start_grid(model, current_fit.as_dict(), name)
-            predicted = problem.predict(grid)
-            objectives = [problem.objective(problem.observed - predicted[i], grid[i, problem.free_index])[0]
-                          for i in range(grid.shape[0])]
-            start = grid[int(np.nanargmin(np.where(np.isfinite(objectives), objectives, np.inf)))]
-            try:
-                fit = _robust_estimate(problem, method, start, settings)
-            except (IdentificationError, np.linalg.LinAlgError) as exc:
-                say(f"  + {name}: refit failed ({exc})")
-                continue
-            cand = _candidate(model, fit, name, current, validation, channels)
-            ranked.append(cand)
-            fits[name] = (model, fit)
-            say(f"  + {name}: dBIC {cand.delta_bic:.1f}, validation force error {cand.gap_after:.3f} %")
-        ranked.sort(key=lambda c: -c.delta_bic)
-        rounds.append(ranked)
-        best = ranked[0]
-        if best.delta_bic > BIC_MIN and best.shrink >= SHRINK_MIN:
-            selected.append(best.added)
-            current = best
-            current_model, current_fit = fits[best.added]
-        else:
-            break
-
-    regime_rms = {}
-    y_nom = simulate_record(base, nominal_fit.estimate, validation)
-    y_fin = simulate_record(current_model, current_fit.estimate, validation)
-    gtau = float(validation.attrs.get("gtau", emps.CONSTANTS["gtau"].nominal))
-    force = gtau * validation["vir"]
-    e_nom = (force - y_nom[:, base.outputs.index("force")])[BORDER:]
-    e_fin = (force - y_fin[:, base.outputs.index("force")])[BORDER:]
-    overall = float(np.sqrt(np.mean(e_nom ** 2)))
-    ratios = {}
-    for name, mask in regime_masks(validation).items():
-        m = mask[BORDER:]
-        if m.any():
-            regime_rms[name] = {"nominal": float(np.sqrt(np.mean(e_nom[m] ** 2))),
-                                "final": float(np.sqrt(np.mean(e_fin[m] ** 2))), "share_of_samples": float(m.mean())}
-            ratios[name] = regime_rms[name]["nominal"] / overall
-    where = {"channels": ["vir"], "regimes": [k for k, r in sorted(ratios.items(), key=lambda kv: -kv[1]) if r > 1.2]}
-    verdict = "effect" if selected else ("unexplained" if nominal.gap_after > 1.0 else "none")
-    return EmpsGapResult(verdict, selected[0] if selected else None, selected, nominal, rounds, current,
-                         where, regime_rms, time.perf_counter() - t0)
+    def figures(self, records, measurements, model, channels, segments, spread) -> dict[str, Any]:
+        parts = _force_residuals(records, measurements, model)
+        ok = [np.isfinite(e) for _, e in parts]
+        force = np.concatenate([z[k] for (z, _), k in zip(parts, ok)])
+        residual = np.concatenate([e[k] for (_, e), k in zip(parts, ok)])
+        gap = float(100.0 * np.linalg.norm(residual) / np.linalg.norm(force))
+        return {"gap": gap, "z": float("nan"), "factors": 0, "per_channel": {"force": gap},
+                "significant": bool(gap > self.significant_percent)}
 
 
-#: The corrected rig model the gap diagnosis points to: no unit delay (actuation_delay at its
-#: physical bound -dt: the command acts in the sample it is computed) and direction-dependent
-#: viscous friction.
-CORRECTED_EFFECTS = ("actuation_delay", "asymmetric_friction")
-CORRECTED_FIXED = {"actuation_delay_tau": -1e-3}
+def force_residual_by_regime(records, channels, model, theta, measurements, spread, constants=None) -> RegimeRms:
+    """EMPS localisation: the force residual's RMS by regime of the reference (:func:`regime_masks`)."""
+    residuals, masks = [], []
+    for (_, e), m in zip(_force_residuals(records, measurements, model), measurements):
+        ok = np.isfinite(e)
+        residuals.append(e[ok])
+        masks.append({k: v[BORDER:][ok] for k, v in regime_masks(m).items()})
+    names = list(dict.fromkeys(k for mk in masks for k in mk))
+    joined = {k: np.concatenate([mk.get(k, np.zeros(e.size, bool)) for mk, e in zip(masks, residuals)]) for k in names}
+    return RegimeRms.of("vir", np.concatenate(residuals), joined)
 
 
-@dataclass
-class EmpsNumbers:
-    """Everything the report shows for EMPS: the nominal ML fits (GN, LM) beside the published
-    values, the same for the corrected model, and the gap diagnosis."""
+def _gap_figure(result, held_out: Sequence[Measurement]):
+    from .report.emps_figures import gap_figure
 
-    fits: dict[str, FitResult]
-    comparison: EmpsComparison
-    corrected_fit: FitResult
-    corrected: EmpsComparison
-    gap: EmpsGapResult
-
-    def summary(self) -> str:
-        gn, lm = self.fits.get("gn"), self.fits.get("lm")
-        agree = (f"GN and LM agree to {np.max(np.abs(gn.estimate / lm.estimate - 1)):.1e} (relative)"
-                 if gn is not None and lm is not None else "")
-        return "\n\n".join([self.comparison.summary(), agree,
-                            "corrected model (no unit delay, asymmetric viscous friction):\n" + self.corrected.summary(),
-                            self.gap.summary()])
-
-    def to_json(self) -> dict[str, Any]:
-        return {"fits": {k: v.to_json() for k, v in self.fits.items()}, "comparison": self.comparison.to_json(),
-                "corrected_fit": self.corrected_fit.to_json(), "corrected": self.corrected.to_json(),
-                "gap": self.gap.to_json()}
+    return gap_figure(result, held_out[0])
 
 
-def emps_numbers(estimation: Measurement, validation: Measurement, *, methods: Sequence[str] = ("gn", "lm"),
-                 channels: Sequence[str] = DEFAULT_CHANNELS, max_effects: int = 2, progress=None) -> EmpsNumbers:
-    """Run the EMPS pipeline behind the report (about a minute on two cores): nominal ML fits,
-    the comparison with the published values (first method), the corrected model and the
-    gap diagnosis (``max_effects`` rounds)."""
-    fits = {m: fit_emps(estimation, method=m, channels=channels) for m in methods}
-    comparison = emps_comparison(fits[methods[0]], estimation, validation)
-    model = get_model("emps").with_effects(list(CORRECTED_EFFECTS))
-    corrected_fit = fit_emps(estimation, model, method=methods[0], channels=channels, fix=CORRECTED_FIXED)
-    corrected = emps_comparison(corrected_fit, estimation, validation)
-    gap = emps_gap(estimation, validation, max_effects=max_effects, channels=channels, progress=progress)
-    return EmpsNumbers(fits, comparison, corrected_fit, corrected, gap)
+#: How :func:`ema_uq.gap.diagnose` treats EMPS: channels (qm, vir) with each record's gains and
+#: initial state; every parameter refitted from a start grid at 0.3, 1 and 3 times
+#: ``Effect.start`` (Gauss-Newton, Levenberg-Marquardt when it goes singular), two
+#: forward-selection rounds; the gap is the validation force error, an effect is kept when it
+#: lowers BIC by more than 10 and shrinks that error by at least 5 %; candidates rank by ΔBIC.
+EMPS_STRATEGY = DiagnosisStrategy(
+    name="emps", channels=DEFAULT_CHANNELS, constants=emps.constants_for,
+    settings=DiagnosisSettings(nominal_max_iterations=Settings().max_iterations,
+                               candidate_max_iterations=Settings().max_iterations, screen_base_parameters=None,
+                               max_effects=2),
+    start_multiples=(0.3, 1.0, 3.0), metric=ForceError(), localize=force_residual_by_regime,
+    where_source="held-out",
+    thresholds=Thresholds(bic_min=10.0, held_out_gain_min=None, shrink_min=0.05, signature_weight=0.0,
+                          gain_in_score=False),
+    figure=_gap_figure)

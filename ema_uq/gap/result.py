@@ -1,0 +1,226 @@
+"""Results of the gap diagnosis: one candidate's refit and scores (:class:`CandidateScore`)
+and the diagnosis (:class:`GapResult`, GAP.json of INTERFACES.md plus details)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+import numpy as np
+
+from .localize import Localization, RegimeRms
+
+
+# ----------------------------------------------------------------------------------------
+# results
+# ----------------------------------------------------------------------------------------
+@dataclass
+class CandidateScore:
+    """One candidate effect's refit and scores (see the module docstring for each figure).
+
+    ``parameters`` maps each effect parameter to {"estimate", "std" (Cramér-Rao), "unit"};
+    gaps are held-out systematic NRMSE, ``nrmse_*`` the plain held-out NRMSE (channel mean).
+    """
+
+    effect: str
+    score: float
+    gap_before: float
+    gap_after: float
+    shrink: float
+    likelihood_ratio: float
+    delta_bic: float
+    held_out_gain: float
+    signature_match: float
+    n_parameters: int
+    parameters: dict[str, dict[str, float]] = field(default_factory=dict)
+    log_det_r: float = float("nan")
+    held_out_log_det_r: float = float("nan")
+    nrmse_after: float = float("nan")
+    gap_z_after: float = float("nan")
+    converged: bool = False
+    iterations: int = 0
+    n_simulations: int = 0
+    wall_time_s: float = 0.0
+    message: str = ""
+    estimate: dict[str, float] = field(default_factory=dict, repr=False)
+    stage: str = ""
+    free_parameters: list[str] = field(default_factory=list, repr=False)
+
+    def to_json(self) -> dict[str, Any]:
+        out = {k: _finite(v) for k, v in vars(self).items()}
+        return out
+
+
+def _finite(value):
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite(v) for v in value]
+    return value
+
+
+def _unfinite(value):
+    if value is None:
+        return float("nan")
+    return value
+
+
+@dataclass
+class GapResult:
+    """Outcome of a sim-to-real gap diagnosis (GAP.json of INTERFACES.md plus details).
+
+    ``verdict`` is ``"effect"``, ``"none"`` or ``"unexplained"``; ``effect`` the winning
+    catalogue name (None unless the verdict is ``effect``); ``ranking`` every candidate,
+    best score first; ``where`` the channels and regimes holding the nominal model's gap;
+    ``localization``/``localization_held_out`` the nominal model's residual localisation on the
+    estimation and the held-out data, ``localization_after``/``localization_after_held_out``
+    the best candidate's; ``where_source`` says which of the two nominal localisations
+    (by default the one with the larger systematic z) gave ``where`` and the signature matches.
+    ``selected`` lists the effects kept by forward selection (the winner, and with more than
+    one round the effects added after it); ``further_rounds`` ranks the candidates of each
+    round after the first (added to the effects selected before it).
+    """
+
+    concept: str
+    verdict: str
+    effect: str | None
+    confidence: str
+    ranking: list[CandidateScore]
+    where: dict[str, list[str]]
+    gap: dict[str, Any]
+    localization: Localization | RegimeRms
+    localization_held_out: Localization | RegimeRms
+    localization_after: Localization | RegimeRms | None
+    localization_after_held_out: Localization | RegimeRms | None
+    where_source: str
+    held_out: str
+    channels: list[str]
+    held_out_channels: list[str]
+    nominal: dict[str, Any]
+    effect_parameters: dict[str, dict[str, float]]
+    thresholds: dict[str, float]
+    wall_time_s: float
+    n_simulations: int
+    seed: int | None = None
+    provenance: dict[str, Any] = field(default_factory=dict)
+    selected: list[str] = field(default_factory=list)
+    further_rounds: list[list[CandidateScore]] = field(default_factory=list)
+
+    @property
+    def best(self) -> CandidateScore | None:
+        return self.ranking[0] if self.ranking else None
+
+    @property
+    def after_effects(self) -> list[str]:
+        """Effects of the model the gap is measured after (``gap["after"]``): the selected ones,
+        else round 1's best candidate."""
+        name = self.gap.get("effect_of_after")
+        return list(self.selected) if self.selected else ([name] if name else [])
+
+    @property
+    def after(self) -> CandidateScore | None:
+        """The refit of the model the gap is measured after (its ``estimate`` is the full vector)."""
+        name = self.gap.get("effect_of_after")
+        rounds = [self.ranking] + list(self.further_rounds)
+        r = max(len(self.selected) - 1, 0)
+        return next((c for c in rounds[r] if c.effect == name), None) if r < len(rounds) else None
+
+    def summary(self) -> str:
+        head = {"effect": f"effect {self.effect} ({self.confidence} confidence)",
+                "none": "no significant gap: the noise explains the residual",
+                "unexplained": "a significant gap that no candidate effect closes"}[self.verdict]
+        lines = [f"[[Gap diagnosis: {self.concept}]] verdict: {head}",
+                 f"    held-out data      = {self.held_out}",
+                 f"    where (channels)   = {', '.join(self.where['channels']) or '-'}  ({self.where_source} data)",
+                 f"    where (regimes)    = {', '.join(self.where['regimes']) or '-'}",
+                 f"    gap ({self.gap['metric'].split(':')[0]}) {self.gap['before']:.4g} -> {self.gap['after']:.4g} "
+                 f"(shrink {self.gap['shrink']:.2f}); plain NRMSE {self.gap['nrmse_before']:.4g} -> "
+                 f"{self.gap['nrmse_after']:.4g}",
+                 f"    wall time          = {self.wall_time_s:.1f} s, {self.n_simulations} simulations",
+                 "[[Ranking]]",
+                 f"    {'effect':<24} {'score':>10} {'dBIC':>10} {'held-out':>10} {'sig':>5} "
+                 f"{'gap before':>10} {'after':>9} {'shrink':>7}"]
+        for c in self.ranking:
+            lines.append(f"    {c.effect:<24} {c.score:>10.1f} {c.delta_bic:>10.1f} {c.held_out_gain:>10.1f} "
+                         f"{c.signature_match:>5.2f} {c.gap_before:>10.4g} {c.gap_after:>9.4g} {c.shrink:>7.2f}"
+                         + ("" if not c.message or c.converged else f"  ({c.message[:60]})"))
+        for r, rnd in enumerate(self.further_rounds, 2):
+            lines.append(f"[[Round {r}]] added to {' + '.join(self.selected[:r - 1])}")
+            lines += [f"    {c.effect:<24} {c.score:>10.1f} {c.delta_bic:>10.1f} {c.gap_before:>10.4g} "
+                      f"{c.gap_after:>9.4g} {c.shrink:>7.2f}" for c in rnd]
+        if self.selected:
+            lines.append(f"    selected           = {' + '.join(self.selected)}")
+        if self.effect_parameters:
+            lines.append("[[Effect parameters]] (std = Cramér-Rao bound)")
+            for name, p in self.effect_parameters.items():
+                lines.append(f"    {name:<24} = {p['estimate']:.6g} +/- {p['std']:.3g} {p.get('unit', '')}")
+        return "\n".join(lines)
+
+    def to_json(self) -> dict[str, Any]:
+        return _finite({
+            "verdict": self.verdict,
+            "effect": self.effect,
+            "confidence": self.confidence,
+            "ranking": [c.to_json() for c in self.ranking],
+            "where": {"channels": list(self.where["channels"]), "regimes": list(self.where["regimes"])},
+            "concept": self.concept,
+            "gap": self.gap,
+            "effect_parameters": self.effect_parameters,
+            "held_out": self.held_out,
+            "channels": list(self.channels),
+            "held_out_channels": list(self.held_out_channels),
+            "nominal": self.nominal,
+            "where_source": self.where_source,
+            "selected": list(self.selected),
+            "further_rounds": [[c.to_json() for c in rnd] for rnd in self.further_rounds],
+            "localization": self.localization.to_json(),
+            "localization_held_out": self.localization_held_out.to_json(),
+            "localization_after": None if self.localization_after is None else self.localization_after.to_json(),
+            "localization_after_held_out": (None if self.localization_after_held_out is None
+                                            else self.localization_after_held_out.to_json()),
+            "thresholds": self.thresholds,
+            "wall_time_s": self.wall_time_s,
+            "n_simulations": self.n_simulations,
+            "seed": self.seed,
+            "provenance": self.provenance,
+        })
+
+    @classmethod
+    def from_json(cls, data: Mapping[str, Any]) -> "GapResult":
+        def optional(key):
+            return None if data.get(key) is None else _localization_from_json(data[key])
+
+        gap = {k: _unfinite(v) for k, v in data["gap"].items()}
+        return cls(
+            concept=data["concept"], verdict=data["verdict"], effect=data["effect"],
+            confidence=data.get("confidence", ""), ranking=[_candidate_from_json(c) for c in data["ranking"]],
+            where=dict(data["where"]), gap=gap,
+            localization=_localization_from_json(data["localization"]),
+            localization_held_out=_localization_from_json(data["localization_held_out"]),
+            localization_after=optional("localization_after"),
+            localization_after_held_out=optional("localization_after_held_out"),
+            where_source=data.get("where_source", "estimation"),
+            held_out=data.get("held_out", ""), channels=list(data.get("channels", [])),
+            held_out_channels=list(data.get("held_out_channels", [])), nominal=dict(data.get("nominal", {})),
+            effect_parameters=dict(data.get("effect_parameters", {})),
+            thresholds=dict(data.get("thresholds", {})),
+            wall_time_s=float(data.get("wall_time_s", 0.0)), n_simulations=int(data.get("n_simulations", 0)),
+            seed=data.get("seed"), provenance=dict(data.get("provenance", {})),
+            selected=list(data.get("selected", [])),
+            further_rounds=[[_candidate_from_json(c) for c in rnd] for rnd in data.get("further_rounds", [])],
+        )
+
+
+def _candidate_from_json(data: Mapping[str, Any]) -> CandidateScore:
+    c = dict(data)
+    for key in ("score", "gap_before", "gap_after", "shrink", "likelihood_ratio", "delta_bic",
+                "held_out_gain", "signature_match", "log_det_r", "held_out_log_det_r", "nrmse_after",
+                "gap_z_after"):
+        if key in c:
+            c[key] = float(_unfinite(c[key]))
+    return CandidateScore(**c)
+
+
+def _localization_from_json(data: Mapping[str, Any]) -> Localization | RegimeRms:
+    return RegimeRms.from_json(data) if data.get("kind") == RegimeRms.KIND else Localization.from_json(data)

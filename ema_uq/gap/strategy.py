@@ -1,0 +1,184 @@
+"""How the one gap diagnosis (:func:`ema_uq.gap.diagnose`) treats a concept.
+
+A :class:`DiagnosisStrategy` holds everything that differs between concepts: the fitted
+channels and per-record design constants, the fit settings (:class:`DiagnosisSettings`:
+iteration caps, screening, forward-selection rounds), the start grid of effect parameters,
+the held-out gap metric, the residual localisation (regime masks), the verdict thresholds
+and, for fault diagnosis, a reference fit whose base parameters are held. The diagnosis
+itself — hold-out split, nominal fit, candidate refits, scores, verdict — is the same for all.
+
+``strategy_for(concept)`` picks a concept's strategy: the model's ``gap_strategy`` attribute
+when it has one (a strategy or a callable returning one), else one registered by
+:func:`register_strategy` (EMPS: :data:`ema_uq.emps_benchmark.EMPS_STRATEGY`), else
+:data:`DEFAULT_STRATEGY` (the synthetic actuator concepts).
+"""
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass, replace
+from typing import Any, Callable, Mapping, Protocol, Sequence
+
+import numpy as np
+
+from ..experiments import Measurement
+from ..statistics import START_MULTIPLES
+from .localize import ResidualRecord, localize, systematic_nrmse
+
+
+@dataclass(frozen=True)
+class DiagnosisSettings:
+    """Fit knobs of :func:`~ema_uq.gap.diagnose` (a strategy carries its concept's defaults).
+
+    ``holdout_fraction``: end of each record held out when no validation data are given;
+    ``nominal_max_iterations``: Gauss-Newton cap of the nominal fit; ``candidate_max_iterations``:
+    cap of a candidate's first refit; ``screen_base_parameters``: base parameters freed beside
+    the effect's in that first refit (the most aliased; None: every parameter free, and no
+    second refit); ``final_candidates``/``final_max_iterations``: leaders refitted with every
+    parameter free, and its cap; ``max_effects``: forward-selection rounds (an effect kept in
+    one round joins the model the next round's candidates are added to).
+    """
+
+    holdout_fraction: float = 0.3
+    nominal_max_iterations: int = 30
+    candidate_max_iterations: int = 8
+    screen_base_parameters: int | None = 6
+    final_candidates: int = 2
+    final_max_iterations: int = 15
+    tolerance: float = 1e-5
+    max_effects: int = 1
+
+
+@dataclass(frozen=True)
+class Thresholds:
+    """Verdict thresholds (see :mod:`ema_uq.gap.attribute`). ``held_out_gain_min`` None: the
+    held-out gain is not required; ``gain_in_score`` False: the ranking score is ΔBIC alone
+    (times the signature factor)."""
+
+    bic_min: float = 25.0
+    held_out_gain_min: float | None = 25.0
+    shrink_min: float = 0.5
+    shrink_confident: float = 0.8
+    margin: float = 1.5
+    signature_weight: float = 0.25
+    gain_in_score: bool = True
+
+    def to_json(self) -> dict[str, Any]:
+        return {"BIC_MIN": self.bic_min, "HELD_OUT_GAIN_MIN": self.held_out_gain_min, "SHRINK_MIN": self.shrink_min,
+                "SHRINK_CONFIDENT": self.shrink_confident, "MARGIN": self.margin,
+                "SIGNATURE_WEIGHT": self.signature_weight}
+
+
+class GapMetric(Protocol):
+    """The held-out gap of a fitted model. ``figures`` returns at least ``gap`` (the metric),
+    ``z`` (its significance in noise σ, NaN when the metric has none), ``factors`` (common
+    error factors), ``per_channel`` ({name: value}) and ``significant`` (the gap stands out of
+    the noise) for residual ``records`` of ``model`` on ``measurements`` (same order) in
+    ``channels``, their complete residual stretches ``segments`` [(n_i, m)] and channel scales
+    ``spread`` (m,)."""
+
+    description: str
+
+    def figures(self, records: Sequence[ResidualRecord], measurements: Sequence[Measurement], model,
+                channels: Sequence[str], segments: Sequence[np.ndarray], spread: np.ndarray) -> dict[str, Any]: ...
+
+
+@dataclass(frozen=True)
+class SystematicNrmse:
+    """Gap metric: the systematic NRMSE (:func:`ema_uq.gap.localize.systematic_nrmse`);
+    significant when common error factors are found or its z exceeds ``z_significant``."""
+
+    z_significant: float = 5.0
+    description: str = "held-out systematic NRMSE: sqrt(channel mean of short-lag residual products / mean square)"
+
+    def figures(self, records, measurements, model, channels, segments, spread) -> dict[str, Any]:
+        gap, per_channel, z, factors = systematic_nrmse(segments, spread)
+        return {"gap": gap, "z": z, "factors": factors, "per_channel": dict(zip(channels, map(float, per_channel))),
+                "significant": bool(z > self.z_significant or factors > 0)}
+
+
+def localize_residual(records, channels, model, theta, measurements, spread, constants=None):
+    """The default localisation: :func:`ema_uq.gap.localize.localize` (actuator regimes)."""
+    return localize(records, channels, model, theta, constants=constants, spread=spread)
+
+
+def ledger_figure(result, held_out: Sequence[Measurement]):
+    """The default gap figure: the ledger of :func:`ema_uq.report.gap_figures.gap_ledger`."""
+    from ..report.gap_figures import gap_ledger
+
+    return gap_ledger(result)
+
+
+@dataclass(frozen=True)
+class DiagnosisStrategy:
+    """What the gap diagnosis does differently for one concept.
+
+    channels : fitted channels (None: every channel the estimation records share).
+    constants : design constants (vector) of one record (None: the model's nominal ones), used
+        for the fits (those of the first estimation record) and every simulation of a record.
+    settings : default :class:`DiagnosisSettings`.
+    start_multiples : start grid of an effect's magnitudes, multiples of ``Effect.start``
+        (phases always on four points of a turn).
+    metric : the held-out gap metric (:class:`GapMetric`).
+    localize : ``(records, channels, model, theta, measurements, spread) -> localisation``;
+        the result needs ``z``, ``structured``, ``where_regimes``, ``where_channels()``,
+        ``signature_match(signature)``, ``summary()`` and ``to_json()``.
+    where_source : ``"larger z"`` (the nominal localisation on estimation or held-out data,
+        whichever has the larger systematic z, gives ``where``) or ``"held-out"``.
+    thresholds : verdict thresholds.
+    reference_fit : base parameter values of a fit on healthy data: the nominal fit starts
+        there, and with ``hold_base`` no base parameter is fitted at all.
+    hold_base : fault diagnosis: base parameters held (at ``reference_fit``, else nominal);
+        the nominal model is evaluated, not fitted, and every candidate refit frees only its
+        effect's parameters.
+    figure : ``(GapResult, held-out measurements) -> matplotlib Figure`` of ``ema-uq gap --figure``.
+    """
+
+    name: str = "default"
+    channels: tuple[str, ...] | None = None
+    constants: Callable[[Measurement], np.ndarray] | None = None
+    settings: DiagnosisSettings = DiagnosisSettings()
+    start_multiples: tuple[float, ...] = START_MULTIPLES
+    metric: Any = SystematicNrmse()
+    localize: Callable[..., Any] = localize_residual
+    where_source: str = "larger z"
+    thresholds: Thresholds = Thresholds()
+    reference_fit: Mapping[str, float] | None = None
+    hold_base: bool = False
+    figure: Callable[..., Any] = ledger_figure
+
+    def __post_init__(self) -> None:
+        if self.where_source not in ("larger z", "held-out"):
+            raise ValueError(f"where_source {self.where_source!r}: choose 'larger z' or 'held-out'")
+        if self.settings.max_effects < 1:
+            raise ValueError(f"max_effects {self.settings.max_effects}: give at least 1 round")
+
+    def with_reference(self, reference_fit: Mapping[str, float], hold_base: bool = True) -> "DiagnosisStrategy":
+        """This strategy for fault diagnosis against a fit on healthy data (base parameters held)."""
+        return replace(self, reference_fit=dict(reference_fit), hold_base=hold_base)
+
+    def constants_of(self, measurement: Measurement) -> np.ndarray | None:
+        return None if self.constants is None else self.constants(measurement)
+
+
+DEFAULT_STRATEGY = DiagnosisStrategy()
+
+#: concept -> strategy, or "module:attribute" imported on first use
+_REGISTRY: dict[str, DiagnosisStrategy | str] = {"emps": "ema_uq.emps_benchmark:EMPS_STRATEGY"}
+
+
+def register_strategy(concept: str, strategy: DiagnosisStrategy | str) -> None:
+    """Make ``strategy`` (or a lazily imported ``"module:attribute"``) the concept's default."""
+    _REGISTRY[concept] = strategy
+
+
+def strategy_for(model) -> DiagnosisStrategy:
+    """The diagnosis strategy of a concept (a :class:`~ema_uq.models.Model`; see the module docstring)."""
+    own = getattr(model, "gap_strategy", None)
+    if own is not None:
+        return own() if callable(own) else own
+    entry = _REGISTRY.get(model.name, DEFAULT_STRATEGY)
+    if isinstance(entry, str):
+        module, attribute = entry.split(":")
+        entry = getattr(importlib.import_module(module), attribute)
+        _REGISTRY[model.name] = entry
+    return entry
