@@ -343,13 +343,14 @@ def _add_sample(subparsers) -> None:
     p.add_argument("--walkers", type=int, default=None, metavar="N",
                    help="walkers per ensemble (default 16 for --moves independence, else "
                         "max(2 x free parameters, 16))")
-    p.add_argument("--chains", "--ensembles", dest="chains", type=int, default=2, metavar="N",
-                   help="independent ensembles (default 2)")
+    p.add_argument("--chains", "--ensembles", dest="chains", type=int, default=4, metavar="N",
+                   help="independent ensembles; R-hat and ESS compare them (default 4)")
     p.add_argument("--max-steps", type=int, default=20000, metavar="N", help="step cap per ensemble (default 20000)")
     p.add_argument("--check-every", type=int, default=50, metavar="N",
                    help="steps between stopping-rule checks (default 50)")
-    p.add_argument("--spread", type=float, default=1.0, metavar="C",
-                   help="start walkers from N(estimate, C x Cramér-Rao covariance) (default 1)")
+    p.add_argument("--spread", type=float, default=9.0, metavar="C",
+                   help="start walkers from N(estimate, C x Cramér-Rao covariance) (default 9: overdispersed, "
+                        "3 Cramér-Rao sd)")
     p.add_argument("--moves", choices=("independence", "de", "stretch"), default="independence",
                    help="emcee moves: independence (Student-t proposal around the ML estimate mixed with "
                         "differential evolution), de (differential evolution) or stretch (default independence)")

@@ -30,15 +30,17 @@ from .posterior import LogPosterior, known_noise_sigma
 from .priors import Prior, build_priors, make_prior, parse_prior
 from .result import HDI_PROB, PosteriorResult
 from .sampler import PLACEMENT_ROUNDS, place_walkers, sample
-from .settings import DEFAULT_ENSEMBLES, INDEPENDENCE_WALKERS, MOVE_KINDS, SamplerSettings
+from .settings import DEFAULT_ENSEMBLES, DEFAULT_SPREAD, INDEPENDENCE_WALKERS, MOVE_KINDS, SamplerSettings
 from .stopping import (AUTOCORR_FACTOR, AUTOCORR_WINDOW, ESS_MIN, RHAT_MAX, STOP_RULE, TAU_CHANGE_SE, TAU_RTOL,
-                       StopCheck, autocorr_times, burn_in_and_thin, check_stop, tau_change_tolerance)
+                       StopCheck, autocorr_times, burn_in_and_thin, check_stop, pooled_draws, tau_change_tolerance,
+                       tau_ess)
 
 __all__ = [
-    "AUTOCORR_FACTOR", "AUTOCORR_WINDOW", "DEFAULT_ENSEMBLES", "ESS_MIN", "HDI_PROB", "INDEPENDENCE_WALKERS",
-    "MOVE_KINDS", "PLACEMENT_ROUNDS", "RHAT_MAX", "STOP_RULE", "TAU_CHANGE_SE", "TAU_RTOL",
+    "AUTOCORR_FACTOR", "AUTOCORR_WINDOW", "DEFAULT_ENSEMBLES", "DEFAULT_SPREAD", "ESS_MIN", "HDI_PROB",
+    "INDEPENDENCE_WALKERS", "MOVE_KINDS", "PLACEMENT_ROUNDS", "RHAT_MAX", "STOP_RULE", "TAU_CHANGE_SE", "TAU_RTOL",
     "BayesError", "DefensiveMixture", "IndependenceMove", "LogPosterior", "PosteriorResult", "Prior",
     "SamplerSettings", "StopCheck", "StudentTProposal",
     "adapted_proposal", "autocorr_times", "build_moves", "build_priors", "burn_in_and_thin", "check_stop",
-    "known_noise_sigma", "make_prior", "parse_prior", "place_walkers", "sample", "tau_change_tolerance",
+    "known_noise_sigma", "make_prior", "parse_prior", "place_walkers", "pooled_draws", "sample",
+    "tau_change_tolerance", "tau_ess",
 ]

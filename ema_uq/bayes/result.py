@@ -1,8 +1,9 @@
 """The result of :func:`ema_uq.bayes.sample` and its ArviZ export.
 
-Layout of the ArviZ export: ArviZ ``chain`` = one walker (``ensemble``/``walker``
-coordinates say which), so R-hat compares walkers within and across the independent
-ensembles; ``draw`` = kept step after burn-in and thinning.
+Layout of the ArviZ export: ArviZ ``chain`` = one independent ensemble (coordinate
+``ensemble``), so R-hat and ESS compare the ensembles; ``draw`` = a kept step (after burn-in
+and thinning) of one walker, the walkers one after the other (coordinates ``walker`` and
+``step`` say which; :func:`~ema_uq.bayes.stopping.pooled_draws`).
 """
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from .errors import BayesError
+from .stopping import pooled_draws
 
 HDI_PROB = 0.9
 
@@ -23,9 +25,10 @@ HDI_PROB = 0.9
 class PosteriorResult:
     """Outcome of :func:`~ema_uq.bayes.sample`: the ArviZ InferenceData plus run facts.
 
-    ``idata`` groups: ``posterior`` (one variable per free parameter, dims chain, draw),
-    ``sample_stats`` (``lp`` log posterior, ``log_prior``, ``accepted`` 0/1 at each kept
-    step, ``acceptance_rate`` per walker), ``log_likelihood`` (``z``: total log L of all
+    ``idata`` groups: ``posterior`` (one variable per free parameter, dims chain = ensemble,
+    draw = walker-major kept step with ``walker``/``step`` coordinates), ``sample_stats``
+    (``lp`` log posterior, ``log_prior``, ``accepted`` 0/1 at each kept step,
+    ``acceptance_rate`` (chain, walker)), ``log_likelihood`` (``z``: total log L of all
     data per draw; pointwise values would be N x draws), ``observed_data`` (fitted channels,
     dim ``obs`` with ``time``/``experiment`` coordinates) and ``posterior_predictive``
     (``<channel>``: replicate with noise, ``<channel>_model``: noise-free output, for a
@@ -69,6 +72,11 @@ class PosteriorResult:
         return np.array(self._json_attr("tau"))
 
     @property
+    def ess_tau(self) -> np.ndarray:
+        """(n_free,) emcee's ESS: steps after burn-in x walkers of all ensembles / mean τ."""
+        return np.array(self._json_attr("ess_tau"))
+
+    @property
     def seed(self) -> int:
         return int(self.idata.posterior.attrs["seed"])
 
@@ -90,15 +98,18 @@ class PosteriorResult:
 
     # --- numbers -----------------------------------------------------------------
     def draws(self) -> np.ndarray:
-        """(n_chains, n_draws, n_free) kept samples in free-vector order."""
+        """(n_ensembles, n_walkers x n_kept, n_free) kept samples in free-vector order."""
         return np.stack([self.idata.posterior[n].values for n in self.names], axis=-1)
 
     def summary(self, hdi_prob: float = HDI_PROB):
         """pandas DataFrame per free parameter: mean, sd, hdi bounds, mcse_mean, mcse_sd,
-        ess_bulk, ess_tail, r_hat (ArviZ), plus the ML estimate and its Cramér-Rao σ."""
+        ess_bulk, ess_tail, r_hat (ArviZ, one chain per ensemble), ess_tau (emcee's
+        figure), plus the ML estimate and its Cramér-Rao σ."""
         import arviz as az
 
         table = az.summary(self.idata, var_names=list(self.names), hdi_prob=hdi_prob, round_to="none")
+        if "ess_tau" in self.idata.posterior.attrs:           # absent in files of older runs
+            table["ess_tau"] = self.ess_tau
         table["ml"] = self.ml_estimate
         table["crb_sd"] = self.crb_std
         return table
@@ -114,7 +125,8 @@ class PosteriorResult:
         a = self.attrs
         head = (f"[[Posterior: {a['concept']} by emcee]] {'converged' if self.converged else 'NOT converged'} "
                 f"({a['stop_reason']}); {a['n_ensembles']} ensembles x {a['n_walkers']} walkers x {self.n_steps} steps, "
-                f"burn-in {self.burn_in}, thin {self.thin}, max tau {float(np.max(self.tau)):.1f}, "
+                f"burn-in {self.burn_in}, thin {self.thin}, max tau {float(np.max(self.tau)):.1f}; R-hat and ESS "
+                f"across the ensembles; "
                 f"{self.n_simulations} simulations, {self.wall_time_s:.1f} s, seed {self.seed}")
         return head + "\n" + self.summary().to_string(float_format=lambda v: f"{v:.6g}")
 
@@ -159,18 +171,18 @@ def inference_data(problem, posterior, chains, log_probs, accepted_total, burn, 
     from .. import __version__
 
     names = list(problem.parameters.free_names)
-    n_ens, n_walkers = len(chains), chains[0].shape[1]
-    n_chain = n_ens * n_walkers
-    # (steps, walkers, p) -> (chain = ensemble*walker, draw, p)
-    kept = np.concatenate([c[burn::thin].transpose(1, 0, 2) for c in chains])
-    lp = np.concatenate([l[burn::thin].T for l in log_probs])
-    moved = np.concatenate([np.any(c[1:] != c[:-1], axis=2)[burn - 1::thin].T for c in chains]).astype(float)
+    n_ens, (n_steps, n_walkers) = len(chains), chains[0].shape[:2]
+    kept = pooled_draws(chains, burn, thin)                              # (ensemble, draw, p)
+    lp = pooled_draws(log_probs, burn, thin)
+    moved = pooled_draws([np.any(c[1:] != c[:-1], axis=2) for c in chains], burn - 1, thin).astype(float)
     n_draw = kept.shape[1]
-    log_prior = posterior.log_prior(kept.reshape(-1, len(names))).reshape(n_chain, n_draw)
-    rate = np.concatenate([a / chains[0].shape[0] for a in accepted_total])
-    coords = {"chain": np.arange(n_chain), "draw": np.arange(n_draw)}
-    chain_coords = {"ensemble": ("chain", np.repeat(np.arange(n_ens), n_walkers)),
-                    "walker": ("chain", np.tile(np.arange(n_walkers), n_ens))}
+    log_prior = posterior.log_prior(kept.reshape(-1, len(names))).reshape(n_ens, n_draw)
+    rate = np.stack([a / n_steps for a in accepted_total])              # (ensemble, walker)
+    coords = {"chain": np.arange(n_ens), "draw": np.arange(n_draw)}
+    steps = np.arange(burn, n_steps, thin)
+    chain_coords = {"ensemble": ("chain", np.arange(n_ens)),
+                    "walker": ("draw", np.repeat(np.arange(n_walkers), steps.size)),
+                    "step": ("draw", np.tile(steps, n_walkers))}
     meta = {"ema_uq_version": __version__, "emcee_version": emcee.__version__,
             "arviz_version": az.__version__, "created_by": "ema_uq.bayes.sample"}
     post = xr.Dataset({n: (("chain", "draw"), kept[:, :, j], {"units": problem.parameters[n].unit})
@@ -178,7 +190,8 @@ def inference_data(problem, posterior, chains, log_probs, accepted_total, burn, 
                       attrs={**meta, **attrs})
     stats = xr.Dataset({"lp": (("chain", "draw"), lp), "log_prior": (("chain", "draw"), log_prior),
                         "accepted": (("chain", "draw"), moved),
-                        "acceptance_rate": (("chain",), rate)}, coords=coords, attrs=meta)
+                        "acceptance_rate": (("chain", "walker"), rate)},
+                       coords={**coords, "walker": np.arange(n_walkers)}, attrs=meta)
     loglik = xr.Dataset({"z": (("chain", "draw"), lp - log_prior)}, coords=coords,
                         attrs={**meta, "note": "total log likelihood of all data per draw"})
     times = np.concatenate([b.time[b.rows] for b in problem.blocks])

@@ -1,8 +1,10 @@
 """The sampler: emcee ensembles started from the ML estimate, run under the stopping rule.
 
-``n_ensembles`` independent emcee ensembles (default 2) of ``n_walkers`` walkers (default
-16), started from N(Θ_ML, c Σ_CRB) restricted to the support, every log-probability call a
-batch (``vectorize=True``) through one simulator call. The independence proposal is adapted
+``n_ensembles`` independent emcee ensembles (default 4) of ``n_walkers`` walkers (default
+16), started overdispersed from N(Θ_ML, c Σ_CRB) restricted to the support (c = 9: three
+Cramér-Rao standard deviations, so that R-hat across the ensembles can see a run that has not
+forgotten its start), every log-probability call a batch (``vectorize=True``) through one
+simulator call. The independence proposal is adapted
 once after a pilot and then frozen (:func:`~ema_uq.bayes.moves.adapted_proposal`).
 
 Each ensemble is one group of an emcee HDF5 backend that also stores its random state after
@@ -366,8 +368,9 @@ def _end_pilot(run: _Run, ensembles: _Ensembles, adapt: int, t0: float, progress
 def _check_line(run: _Run, ensembles: _Ensembles, check: StopCheck, n: int, t0: float) -> str:
     """The progress line of one evaluation of the stopping rule at step ``n``."""
     return (f"step {n}/{run.settings.max_steps}: max tau {np.max(check.tau):.1f} "
-            f"(50 tau = {AUTOCORR_FACTOR * np.max(check.tau):.0f}), R-hat {check.max_rhat:.3f}, "
-            f"bulk/tail ESS {check.min_ess_bulk:.0f}/{check.min_ess_tail:.0f}, "
+            f"(50 tau = {AUTOCORR_FACTOR * np.max(check.tau):.0f}), across {len(ensembles.samplers)} ensembles "
+            f"R-hat {check.max_rhat:.3f}, bulk/tail ESS {check.min_ess_bulk:.0f}/{check.min_ess_tail:.0f} "
+            f"(tau ESS {check.min_ess_tau:.0f}), "
             f"acceptance {ensembles.acceptance():.2f}, "
             f"{run.posterior.n_simulations} simulations, {time.perf_counter() - t0:.0f} s"
             + ("" if check.converged else f"; waiting for {', '.join(check.missing)}"))
@@ -409,6 +412,8 @@ def _run_facts(run: _Run, ensembles: _Ensembles, outcome: _Outcome, burn: int, t
         "noise_sigma": json.dumps(None if run.sigma is None else run.sigma.tolist()),
         "priors": json.dumps({n: p.describe() for n, p in zip(params.free_names, run.priors)}),
         "tau": json.dumps(outcome.check.tau.tolist()),
+        "ess_tau": json.dumps(outcome.check.ess_tau.tolist()),
+        "diagnostics": "R-hat and ESS across ensembles: one chain per ensemble, its walkers' kept draws concatenated",
         "free_parameters": json.dumps(list(params.free_names)),
         "fixed_values": json.dumps({n: float(v) for n, v, f in zip(params.names, run.base, params.free_mask)
                                     if not f}),

@@ -6,7 +6,8 @@ from dataclasses import dataclass
 
 from .errors import BayesError
 
-DEFAULT_ENSEMBLES = 2
+DEFAULT_ENSEMBLES = 4         # R-hat across ensembles needs several independent ones
+DEFAULT_SPREAD = 9.0         # start from N(Θ_ML, 9 Σ_CRB): three Cramér-Rao sd, overdispersed
 INDEPENDENCE_WALKERS = 16    # walkers per ensemble for the independence mix (any n_free)
 MOVE_KINDS = ("independence", "de", "stretch")
 
@@ -17,8 +18,9 @@ class SamplerSettings:
 
     n_walkers: walkers per ensemble (None: 16 for ``"independence"``, else max(2 n_free, 16),
     rounded up to even);
-    n_ensembles: independent ensembles; max_steps: step cap per ensemble; check_every:
-    steps between stopping-rule checks; spread: c in N(Θ_ML, c Σ_CRB) for the start;
+    n_ensembles: independent ensembles (default 4; R-hat and ESS compare them); max_steps:
+    step cap per ensemble; check_every: steps between stopping-rule checks; spread: c in
+    N(Θ_ML, c Σ_CRB) for the start (default 9: overdispersed, three Cramér-Rao sd);
     n_predictive: posterior draws simulated for the predictive group; vectorize: one
     batched call per log-probability evaluation (False = one call per walker, for benchmarks);
     integrator: of the likelihood's simulations, "rk4", "dopri5" or "hybrid" (None: the
@@ -58,7 +60,7 @@ class SamplerSettings:
     n_ensembles: int = DEFAULT_ENSEMBLES
     max_steps: int = 20000
     check_every: int = 50
-    spread: float = 1.0
+    spread: float = DEFAULT_SPREAD
     moves: str = "independence"
     n_predictive: int = 100
     vectorize: bool = True

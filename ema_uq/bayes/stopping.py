@@ -1,11 +1,19 @@
 """The stopping rule: autocorrelation times, burn-in and thinning, R-hat and ESS.
 
-Evaluated every ``check_every`` steps (:func:`check_stop`): every chain is longer than 50 τ,
-τ changed by < 1 % since the previous check (or by less than three standard errors of its
-estimate, which a τ of a few steps needs), and the kept draws give rank-normalised R-hat
-< 1.01 and bulk and tail ESS >= 400 for every parameter. R-hat of chains with τ > 1 exceeds 1
-by about (τ - 1)/L for L kept draws per chain, so with short τ it is R-hat, not 50 τ, that
-sets the length. The rule uses only the stored chains, so it is resume-invariant.
+Evaluated every ``check_every`` steps (:func:`check_stop`): every ensemble's chain is longer
+than 50 τ, τ changed by < 1 % since the previous check (or by less than three standard errors
+of its estimate, which a τ of a few steps needs), and the kept draws give rank-normalised
+split R-hat < 1.01 and bulk and tail ESS >= 400 for every parameter. The rule uses only the
+stored chains, so it is resume-invariant.
+
+R-hat and ESS compare the independent ensembles, not the walkers of one ensemble: the
+walkers of an ensemble move together (a differential-evolution step moves a walker along the
+difference of two others), so they are not independent chains, and R-hat across them cannot
+see an ensemble that as a whole has not forgotten its start. Estimator
+(:func:`pooled_draws`): one ArviZ chain per ensemble, the kept draws of its walkers
+concatenated walker after walker; split R-hat then also compares the first half of an
+ensemble's walkers with the second. The emcee figure ESS_τ = (steps after burn-in) x (walkers
+of all ensembles) / τ, τ the mean over ensembles, is reported beside ArviZ's bulk and tail ESS.
 """
 from __future__ import annotations
 
@@ -43,6 +51,22 @@ def burn_in_and_thin(taus: np.ndarray, n: int) -> tuple[int, int]:
     return burn, min(thin, max(1, (n - burn) // 4))
 
 
+def pooled_draws(chains: Sequence[np.ndarray], burn: int, thin: int) -> np.ndarray:
+    """One chain per ensemble: (n_ensembles, n_walkers * n_kept, ...) from per-ensemble
+    stored arrays (n_steps, n_walkers, ...) (chains with a trailing n_free axis, or log
+    probabilities without it), keeping steps ``burn::thin`` and concatenating the walkers' kept
+    steps walker after walker (draw w * n_kept + i is walker w's i-th kept step)."""
+    kept = [np.swapaxes(c[burn::thin], 0, 1) for c in chains]        # (walkers, n_kept, ...)
+    return np.stack([k.reshape((-1,) + k.shape[2:]) for k in kept])
+
+
+def tau_ess(taus: np.ndarray, n_after_burn: int, n_walkers_total: int) -> np.ndarray:
+    """emcee's effective sample size per parameter (n_free,): steps after burn-in times the
+    walkers of all ensembles over τ (``taus`` (n_ensembles, n_free) [steps], averaged over
+    the ensembles)."""
+    return n_after_burn * n_walkers_total / np.mean(np.atleast_2d(taus), axis=0)
+
+
 def tau_change_tolerance(taus: np.ndarray, n: int, check_every: int, n_walkers: int) -> np.ndarray:
     """Relative change of τ [-] accepted between the estimates at ``n - check_every`` and
     ``n`` steps: 1 %, or 3 standard errors of the change when the estimator cannot resolve 1 %.
@@ -65,8 +89,9 @@ class StopCheck:
     decides exactly as an uninterrupted one).
 
     ``tau`` (n_ensembles, n_free) [steps]; ``burn_in``/``thin`` [steps] of the export;
-    ``max_rhat``/``min_ess_bulk``/``min_ess_tail`` over the kept draws (ArviZ, walkers as
-    chains); ``missing``: the conditions not yet met (empty when converged).
+    ``max_rhat``/``min_ess_bulk``/``min_ess_tail`` over the kept draws (ArviZ, one chain per
+    ensemble: :func:`pooled_draws`); ``ess_tau`` (n_free,) emcee's ESS (:func:`tau_ess`);
+    ``missing``: the conditions not yet met (empty when converged).
     """
 
     n: int
@@ -76,28 +101,32 @@ class StopCheck:
     max_rhat: float
     min_ess_bulk: float
     min_ess_tail: float
+    ess_tau: np.ndarray
     missing: tuple[str, ...]
 
     @property
     def converged(self) -> bool:
         return not self.missing
 
+    @property
+    def min_ess_tau(self) -> float:
+        return float(np.min(self.ess_tau))
+
 
 STOP_RULE = (f"every chain longer than {AUTOCORR_FACTOR:g} tau, tau changed < {TAU_RTOL:.0%} (or < "
              f"{TAU_CHANGE_SE:g} standard errors of its estimate), R-hat < {RHAT_MAX:g} and bulk and tail "
-             f"ESS >= {ESS_MIN:g}")
+             f"ESS >= {ESS_MIN:g} across the ensembles")
 
 
 def check_stop(chains: Sequence[np.ndarray], n: int, check_every: int) -> StopCheck:
     """Evaluate the stopping rule on the first ``n`` steps of each ensemble's chain
-    (n_steps, n_walkers, n_free)."""
+    (n_steps, n_walkers, n_free); R-hat and ESS with one chain per ensemble."""
     import arviz as az
 
     chains = [c[:n] for c in chains]
     taus = np.array([autocorr_times(c) for c in chains])
     burn, thin = burn_in_and_thin(taus, n)
-    # (steps, walkers, p) -> (chain = ensemble*walker, draw, p), as in the export
-    kept = np.concatenate([c[burn::thin].transpose(1, 0, 2) for c in chains])
+    kept = pooled_draws(chains, burn, thin)                            # as in the export
     with np.errstate(invalid="ignore", divide="ignore"):
         rhat = np.array([az.rhat(kept[:, :, j]) for j in range(kept.shape[2])], dtype=float)
         ess = np.array([[az.ess(kept[:, :, j], method=m) for m in ("bulk", "tail")] for j in range(kept.shape[2])],
@@ -118,4 +147,5 @@ def check_stop(chains: Sequence[np.ndarray], n: int, check_every: int) -> StopCh
         missing.append(f"R-hat < {RHAT_MAX:g}")
     if not np.all(min_ess >= ESS_MIN):
         missing.append(f"ESS >= {ESS_MIN:g}")
-    return StopCheck(n, taus, burn, thin, max_rhat, float(min_ess[0]), float(min_ess[1]), tuple(missing))
+    ess_tau = tau_ess(taus, n - burn, sum(c.shape[1] for c in chains))
+    return StopCheck(n, taus, burn, thin, max_rhat, float(min_ess[0]), float(min_ess[1]), ess_tau, tuple(missing))

@@ -175,8 +175,7 @@ def test_inference_data_groups_and_netcdf_round_trip(result, problem, tmp_path):
     idata = result.idata
     for group in ("posterior", "sample_stats", "log_likelihood", "observed_data", "posterior_predictive"):
         assert group in idata.groups()
-    n_chain = FAST.n_ensembles * 8
-    assert idata.posterior["J"].shape[0] == n_chain
+    assert idata.posterior["J"].shape[0] == FAST.n_ensembles           # one chain per ensemble
     assert set(idata.posterior.data_vars) == set(FREE)
     assert {"lp", "accepted", "acceptance_rate", "log_prior"} <= set(idata.sample_stats.data_vars)
     assert 0.05 < float(idata.sample_stats["acceptance_rate"].mean()) < 0.95
@@ -184,8 +183,14 @@ def test_inference_data_groups_and_netcdf_round_trip(result, problem, tmp_path):
     assert idata.posterior_predictive["I_A"].shape == (1, 10, problem.n_samples)
     np.testing.assert_allclose(idata.log_likelihood["z"] + idata.sample_stats["log_prior"],
                                idata.sample_stats["lp"], rtol=0, atol=1e-9)
-    # every draw comes after burn-in, thinned: n_draw = ceil((n_steps - burn) / thin)
-    assert idata.posterior.sizes["draw"] == -(-(result.n_steps - result.burn_in) // result.thin)
+    # every draw comes after burn-in, thinned: ceil((n_steps - burn) / thin) per walker, the
+    # 8 walkers of an ensemble one after the other
+    n_kept = -(-(result.n_steps - result.burn_in) // result.thin)
+    assert idata.posterior.sizes["draw"] == 8 * n_kept
+    np.testing.assert_array_equal(idata.posterior["walker"], np.repeat(np.arange(8), n_kept))
+    np.testing.assert_array_equal(idata.posterior["step"][:n_kept],
+                                  result.burn_in + result.thin * np.arange(n_kept))
+    assert idata.sample_stats["acceptance_rate"].shape == (FAST.n_ensembles, 8)
 
     path = result.to_netcdf(tmp_path / "post.nc")
     back = PosteriorResult.from_netcdf(path)
@@ -398,6 +403,22 @@ def ar1_chains(rng, phi, n, walkers, n_free, n_ensembles):
     return out
 
 
+def test_r_hat_and_ess_take_one_chain_per_ensemble_of_its_walkers_concatenated():
+    steps, walkers = np.arange(10)[:, None, None], np.arange(3)[None, :, None]
+    chains = [100 * k + 10 * walkers + steps + np.zeros((10, 3, 2)) for k in range(2)]
+    pooled = bayes.pooled_draws(chains, 4, 2)                    # steps 4, 6, 8 of walkers 0, 1, 2
+    assert pooled.shape == (2, 9, 2)
+    np.testing.assert_array_equal(pooled[1, :, 0], [104, 106, 108, 114, 116, 118, 124, 126, 128])
+    assert bayes.pooled_draws([c[..., 0] for c in chains], 4, 2).shape == (2, 9)
+    # walkers that agree with each other but not with the other ensemble: R-hat across the
+    # ensembles sees it, R-hat across all walkers as chains would barely
+    rng = np.random.default_rng(3)
+    offsets = [rng.standard_normal(3) * 0.15 for _ in range(4)]
+    common = [o + rng.standard_normal((400, 16, 3)) for o in offsets]
+    check = bayes.check_stop(common, 400, 50)
+    assert "R-hat < 1.01" in check.missing and check.max_rhat > 1.01
+
+
 def test_stopping_rule_on_synthetic_chains():
     rng = np.random.default_rng(0)
     # independent draws (τ = 1): stop. The bare 1 % rule would not: its τ estimate moves by
@@ -407,6 +428,8 @@ def test_stopping_rule_on_synthetic_chains():
     assert check.converged, check.missing
     assert check.max_rhat < 1.01 and min(check.min_ess_bulk, check.min_ess_tail) > 5000
     assert (check.burn_in, check.thin) == (int(np.ceil(2 * check.tau.max())), 1)
+    # emcee's ESS beside ArviZ's: 2 x 16 walkers x (300 - burn-in) steps / τ
+    np.testing.assert_allclose(check.ess_tau, 32 * (300 - check.burn_in) / check.tau.mean(axis=0), rtol=1e-12)
     prev = np.array([bayes.autocorr_times(c[:250]) for c in iid])
     assert np.max(np.abs(check.tau - prev) / check.tau) > 0.01
 
@@ -414,9 +437,10 @@ def test_stopping_rule_on_synthetic_chains():
     slow = bayes.check_stop(ar1_chains(rng, 0.9, 300, 16, 3, 2), 300, 50)
     assert not slow.converged and slow.missing[0].startswith("50 tau")
     assert 12 < slow.tau.max() < 30
-    # one ensemble off by half a standard deviation: R-hat says no
+    # one ensemble off by half a standard deviation: R-hat says no (and ESS, which ArviZ
+    # computes from the variance across the ensembles)
     shifted = bayes.check_stop([iid[0], iid[1] + np.array([0.0, 0.5, 0.0])], 300, 50)
-    assert shifted.missing == ("R-hat < 1.01",), shifted.missing
+    assert "R-hat < 1.01" in shifted.missing and shifted.max_rhat > 1.02, shifted.missing
     # too few draws: 2 walkers x 2 ensembles x 90 steps
     few = bayes.check_stop([c[:90, :2] for c in iid], 90, 30)
     assert "ESS >= 400" in few.missing
