@@ -156,7 +156,11 @@ def _posterior_section(study: dict, results: Path) -> str:
              f"{post.wall_time_s:.0f} s, seed {post.seed}; moves: {html.escape(str(a.get('move_mix', a.get('moves', ''))))}; "
              f"likelihood: {html.escape(str(a.get('likelihood', '')))}, simulated with "
              f"{html.escape(str(a.get('integrator', 'the model integrator')))}.")
-    parts = [f"<p>emcee started from the ML estimate. {facts}</p>",
+    diagnostics = (" R-hat and ESS compare the ensembles (one chain per ensemble: its walkers' kept draws "
+                   "concatenated); emcee's τ ESS (steps after burn-in × walkers / τ) is at least "
+                   f"{float(np.min(post.ess_tau)):.0f}." if "ess_tau" in a else "")
+    parts = [f"<p>emcee started from the ML estimate (N(ML, {float(a['spread']):g} × Cramér-Rao covariance)). "
+             f"{facts}{diagnostics}</p>",
              _table(["parameter"] + (["truth"] if synthetic else []) + [
                  "ML ± CRB σ", "posterior mean ± sd", "90 % HDI", "sd / CRB σ", "R-hat", "bulk ESS", "tail ESS",
                  "MCSE mean"], rows)]
