@@ -642,8 +642,10 @@ def _run_gap(args: argparse.Namespace) -> str:
         tail = f", ledger {args.figure}"
     what = {"effect": f"effect {result.effect} ({result.confidence} confidence)", "none": "no significant gap",
             "unexplained": "unexplained gap"}[result.verdict]
+    shrink = "" if result.gap["shrink"] is None else (f" (shrink {result.gap['shrink']:.2f} +/- "
+                                                     f"{result.gap['shrink_se']:.2f} on the {result.gap['shrink_record']})")
     return (f"wrote {args.out}: {result.concept} verdict {what}; held-out gap {result.gap['before']:.3g} -> "
-            f"{result.gap['after']:.3g} (shrink {result.gap['shrink']:.2f}), {result.wall_time_s:.0f} s{tail}")
+            f"{result.gap['after']:.3g}{shrink}, {result.wall_time_s:.0f} s{tail}")
 
 
 def _add_gap_selfcheck(subparsers) -> None:

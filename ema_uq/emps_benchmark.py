@@ -336,11 +336,13 @@ def regime_masks(measurement: Measurement) -> dict[str, np.ndarray]:
 
 
 def _force_residuals(records, measurements, model) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(measured force, force residual) [N] of each record from sample ``BORDER`` on."""
+    """(measured force, force residual) [N] of each record from sample ``BORDER`` on; NaN
+    residual where the record's fitted channels are not observed (a held-out part)."""
     out = []
     for record, m in zip(records, measurements):
         force = measured_force(m)
-        out.append((force[BORDER:], (force - record.outputs[:, model.outputs.index("force")])[BORDER:]))
+        residual = np.where(record.valid, force - record.outputs[:, model.outputs.index("force")], np.nan)
+        out.append((force[BORDER:], residual[BORDER:]))
     return out
 
 
@@ -359,7 +361,11 @@ class ForceError:
         residual = np.concatenate([e[k] for (_, e), k in zip(parts, ok)])
         gap = float(100.0 * np.linalg.norm(residual) / np.linalg.norm(force))
         return {"gap": gap, "z": float("nan"), "factors": 0, "per_channel": {"force": gap},
-                "significant": bool(gap > self.significant_percent)}
+                "significant": bool(gap > self.significant_percent),
+                "terms": np.column_stack([residual ** 2, force ** 2])}
+
+    def combine(self, sums: np.ndarray) -> np.ndarray:
+        return 100.0 * np.sqrt(sums[..., 0] / sums[..., 1])
 
 
 def force_residual_by_regime(records, channels, model, theta, measurements, spread, constants=None) -> RegimeRms:

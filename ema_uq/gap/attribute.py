@@ -13,6 +13,11 @@ Procedure (``diagnose``):
 1. Held-out data: the ``validation`` measurements when given; otherwise the last
    ``holdout_fraction`` (30 %) of every estimation record is held out — the first 70 % is
    fitted, and the held-out part is predicted by simulating the whole record from rest.
+   The held-out data are split in a *selection* part, which chooses the winner (held-out
+   gain, selection shrink, significance: everything the verdict reads), and a *scoring*
+   part, on which the shrink is reported: with two or more held-out records the last one
+   scores and the others select; with one, its complete samples are split in time halves
+   (the first selects, the second scores).
 2. Nominal ML fit (det R, Gauss-Newton) on the estimation data from the nominal values
    (parameters the channels cannot determine — no effect on them, or a singular direction
    of the information matrix, e.g. k_n without a current channel — are held at their nominal
@@ -34,8 +39,14 @@ Procedure (``diagnose``):
    screening (a lower bound of what a full refit reaches).
 4. Scores per candidate (N = estimation samples, k = effect parameters, V = negative log-likelihood):
    likelihood ratio LR = 2 (V_nominal - V_candidate) = N Δ log det R (+ rig-prior change),
-   ΔBIC = LR - k ln N, held-out gain G = N_val (log det R_val,nominal - log det R_val,candidate),
-   gap before/after on the held-out data and shrink = 1 - after / before, and the signature match
+   ΔBIC = LR - k ln N, held-out gain G = N_sel (log det R_sel,nominal - log det R_sel,candidate)
+   on the selection part, the selection shrink 1 - after / before of the gap there, the gap
+   before/after on the scoring part and the *shrink* = 1 - after / before there (signed, not
+   clipped: a candidate that widens the gap has a negative shrink) with its standard error
+   (block bootstrap: the scoring part's samples in ``SHRINK_BLOCKS`` (20) contiguous blocks,
+   ``SHRINK_REPLICATES`` (400) resamples of the blocks' sums of the metric's per-sample terms,
+   before and after on the same resampled samples, seeded by the diagnosis seed, else 0; the
+   metric's factor split is held at its fit on the whole part), and the signature match
    m in [0, 1] (:meth:`Localization.signature_match`). Ranking score::
 
        score = (ΔBIC + G) · (1 + SIGNATURE_WEIGHT · m)     (when ΔBIC + G > 0, else ΔBIC + G)
@@ -45,18 +56,20 @@ Procedure (``diagnose``):
    candidates are added to that model and scored against it in the next round.
 6. Verdict:
    ``effect`` when the best candidate has ΔBIC > ``BIC_MIN``, G > ``HELD_OUT_GAIN_MIN`` and,
-   if the nominal model's held-out gap is significant (see below), a held-out shrink
-   ≥ ``SHRINK_MIN`` (an insignificant gap is noise, and its shrink no evidence). Its
+   if the nominal model's gap on the selection part is significant (see below), a selection
+   shrink ≥ ``SHRINK_MIN`` (an insignificant gap is noise, and its shrink no evidence). Its
    confidence is ``high`` when its score is at least ``MARGIN`` times the runner-up's, the
-   shrink is ≥ ``SHRINK_CONFIDENT`` (or the gap insignificant) and the augmented model's
+   selection shrink is ≥ ``SHRINK_CONFIDENT`` (or the gap insignificant) and the augmented model's
    residual passes every residual test of the localisation, on estimation and held-out
    data; else ``low``.
    Otherwise ``unexplained`` when the nominal residual is structured (Ljung-Box, bias,
    input cross-correlation, common error factors or systematic energy, family-wise level
-   0.001) on the estimation or the held-out data, or the held-out gap is significant;
-   else ``none``: the noise explains the residual.
+   0.001) on the estimation or the held-out data, or the gap on the selection part is
+   significant; else ``none``: the noise explains the residual.
    The winner's figures (``gap.after``, ``effect_parameters``, ``localization_after``) are
-   those of the best-ranked candidate whatever the verdict.
+   those of the best-ranked candidate whatever the verdict. GAP.json ``gap``: ``before`` and
+   ``after`` on all held-out data; ``shrink``, ``shrink_se`` (scored on ``shrink_record``) and
+   ``selection_shrink`` only for an ``effect`` verdict (null otherwise).
 
 Gap metric: the held-out *systematic NRMSE* (:func:`ema_uq.gap.localize.systematic_nrmse`):
 per channel the model-error mean square — the part of the residual that channels share
@@ -78,7 +91,7 @@ candidate's at most 660 (on an out-of-catalogue case, then without held-out shri
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Sequence
 
 import numpy as np
@@ -103,6 +116,9 @@ Z_HELD_OUT = 5.0
 PHASE_STARTS = statistics.PHASE_STARTS
 MAX_GRID = statistics.MAX_GRID
 SINGULAR_RELATIVE = 1e-10
+SHRINK_BLOCKS = 20          # contiguous blocks of the scoring part resampled for the shrink's standard error
+SHRINK_REPLICATES = 400
+SHRINK_SEED = 0             # bootstrap seed when the diagnosis is given none
 
 __all__ = ["CandidateScore", "DiagnosisSettings", "DiagnosisStrategy", "GapError", "GapResult", "diagnose",
            "split_holdout"]
@@ -166,11 +182,42 @@ class _Split:
     est_spread: np.ndarray = field(init=False)
     held_spread: np.ndarray = field(init=False)
 
+    parts: dict[str, list[np.ndarray]] = field(init=False)
+    shrink_record: str = field(init=False)
+
     def __post_init__(self) -> None:
         self.est_names = [f"estimation {i + 1}: {m.experiment.name}" for i, m in enumerate(self.estimation)]
         self.held_names = [f"held-out {i + 1}: {m.experiment.name}" for i, m in enumerate(self.held)]
         self.est_spread = _spread(self.estimation, self.channels)
         self.held_spread = _spread(self.held, self.held_channels)
+        self.parts, self.shrink_record = _selection_and_scoring(self.held, self.held_channels)
+
+    def part(self, records: Sequence[ResidualRecord], part: str):
+        """(records, measurements) of the held-out ``part``: "all", "selection" (chooses the
+        winner) or "scoring" (scores its shrink); samples outside the part are NaN."""
+        if part == "all":
+            return list(records), list(self.held)
+        kept = [(replace(r, observed=np.where(mask[:, None], r.observed, np.nan)), m)
+                for r, m, mask in zip(records, self.held, self.parts[part]) if mask.any()]
+        return [r for r, _ in kept], [m for _, m in kept]
+
+
+def _selection_and_scoring(held: Sequence[Measurement], channels: Sequence[str]):
+    """Sample masks of the held-out records that select the winner and that score its shrink,
+    and what the scoring part is: with two or more held-out records the last one scores and
+    the others select; with one, its complete samples are split in time halves (the first
+    selects, the second scores)."""
+    valid = [np.all(np.isfinite(m.select(channels).values), axis=1) for m in held]
+    if len(held) > 1:
+        selection = [v if i < len(held) - 1 else np.zeros_like(v) for i, v in enumerate(valid)]
+        scoring = [np.zeros_like(v) if i < len(held) - 1 else v for i, v in enumerate(valid)]
+        return {"selection": selection, "scoring": scoring}, f"held-out record {held[-1].experiment.name}"
+    rows = np.flatnonzero(valid[0])
+    cut = rows[rows.size // 2]
+    first = valid[0] & (np.arange(valid[0].size) < cut)
+    time = held[0].time
+    return ({"selection": [first], "scoring": [valid[0] & ~first]},
+            f"second half of held-out record {held[0].experiment.name} (t >= {time[cut] - time[0]:.3g} s)")
 
 
 def _split(measurements: list[Measurement], validation: list[Measurement], strategy: DiagnosisStrategy,
@@ -208,7 +255,8 @@ def _spread(measurements: Sequence[Measurement], channels: Sequence[str]) -> np.
 @dataclass
 class _Reference:
     """A fitted model candidates are compared with: the nominal fit, or the model with the
-    effects selected so far. ``figures``: its held-out figures (:meth:`_Diagnosis.held_out_figures`)."""
+    effects selected so far. ``figures``: its held-out figures of the selection and the scoring
+    part (:meth:`_Diagnosis.parts`)."""
 
     model: Any
     fit: FitResult
@@ -231,6 +279,12 @@ class _Diagnosis:
     fixed: list[str] = field(default_factory=list)
     n_samples: int = 0
     n_sims: int = 0
+    seed: int | None = None
+    resamples: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        rng = np.random.default_rng(SHRINK_SEED if self.seed is None else self.seed)
+        self.resamples = rng.integers(0, SHRINK_BLOCKS, size=(SHRINK_REPLICATES, SHRINK_BLOCKS))
 
     def records(self, model, theta: np.ndarray, held: bool) -> list[ResidualRecord]:
         """Residual records of one full parameter vector on the held-out or the estimation records."""
@@ -246,16 +300,41 @@ class _Diagnosis:
         return self.strategy.localize(records, channels, model, theta, measurements, spread,
                                       constants=self.strategy.constants_of(measurements[0]))
 
-    def held_out_figures(self, model, records: Sequence[ResidualRecord]) -> dict[str, Any]:
-        """Gap metric and companions on held-out records: the strategy's metric (gap, z,
-        factors, per_channel, significant), plain NRMSE (channel mean), log det R and sample count."""
+    def held_out_figures(self, model, records: Sequence[ResidualRecord], part: str = "all") -> dict[str, Any]:
+        """Gap metric and companions on a part of the held-out records (:meth:`_Split.part`): the
+        strategy's metric (gap, z, factors, per_channel, significant, terms), plain NRMSE
+        (channel mean), log det R and sample count."""
         d = self.data
+        records, measurements = d.part(records, part)
         segments = [seg for r in records for seg in complete_runs(r.residual)]
-        out = dict(self.strategy.metric.figures(records, d.held, model, d.held_channels, segments, d.held_spread))
+        out = dict(self.strategy.metric.figures(records, measurements, model, d.held_channels, segments,
+                                                d.held_spread))
         e = np.concatenate(segments)
         out.update(nrmse=float(np.mean(np.sqrt(np.mean(e ** 2, axis=0)) / d.held_spread)),
                    log_det_r=statistics.log_det(e.T @ e / e.shape[0]), n=int(e.shape[0]))
         return out
+
+    def parts(self, model, records: Sequence[ResidualRecord]) -> dict[str, dict[str, Any]]:
+        """Held-out figures of the selection and the scoring part."""
+        return {part: self.held_out_figures(model, records, part) for part in ("selection", "scoring")}
+
+    def shrink_se(self, before: dict[str, Any], after: dict[str, Any]) -> float:
+        """Standard error of the shrink 1 - gap_after / gap_before on the scoring part: block
+        bootstrap (``SHRINK_BLOCKS`` contiguous blocks of its samples, the same ``SHRINK_REPLICATES``
+        seeded resamples for every candidate) of the metric's per-sample terms, before and after
+        on the same samples; NaN when the two models' complete samples differ."""
+        a, b = after["terms"], before["terms"]
+        if a.shape != b.shape or a.shape[0] < SHRINK_BLOCKS:
+            return float("nan")
+        blocks = np.array_split(np.arange(a.shape[0]), SHRINK_BLOCKS)
+        sums_a = np.array([a[i].sum(axis=0) for i in blocks])
+        sums_b = np.array([b[i].sum(axis=0) for i in blocks])
+        metric = self.strategy.metric
+        with np.errstate(invalid="ignore", divide="ignore"):
+            shrinks = 1.0 - metric.combine(sums_a[self.resamples].sum(axis=1)) / metric.combine(
+                sums_b[self.resamples].sum(axis=1))
+        shrinks = shrinks[np.isfinite(shrinks)]
+        return float(np.std(shrinks, ddof=1)) if shrinks.size > 1 else float("nan")
 
 
 def _simulate_records(model, thetas: np.ndarray, measurements: Sequence[Measurement], channels: Sequence[str],
@@ -469,34 +548,38 @@ def _fit_nominal(run: _Diagnosis):
     run.n_sims += len(d.estimation) + len(d.held)
     loc_est = run.localise(base, nominal.estimate, est_records, held=False)
     loc_held = run.localise(base, nominal.estimate, held_records, held=True)
-    before = run.held_out_figures(base, held_records)
-    run.say(f"nominal: log det R {nominal.log_det_r:.4g}, held-out gap {before['gap']:.4g} "
-            f"(z {before['z']:.1f}); {'structured' if loc_est.structured else 'white'} residual")
+    before = run.parts(base, held_records)
+    before["all"] = run.held_out_figures(base, held_records)
+    run.say(f"nominal: log det R {nominal.log_det_r:.4g}, held-out gap {before['all']['gap']:.4g} "
+            f"(z {before['all']['z']:.1f}); {'structured' if loc_est.structured else 'white'} residual")
     return _Reference(base, nominal, nominal.objective, before, []), loc_est, loc_held
 
 
 def _score(run: _Diagnosis, reference: _Reference, name: str, effect, refit, seconds: float, stage: str,
            loc) -> tuple[CandidateScore, dict[str, Any]]:
     """Step 5: one refitted candidate's scores against the reference (module docstring, step 4)
-    and its held-out figures."""
+    and its held-out figures (selection and scoring part)."""
     augmented, names, fit, objective = refit
     th = run.strategy.thresholds
     before = reference.figures
     lr = 2.0 * (reference.objective - objective)
     delta_bic = lr - len(names) * np.log(run.n_samples)
-    after = run.held_out_figures(augmented, run.records(augmented, fit.estimate, held=True))
-    gain = after["n"] * (before["log_det_r"] - after["log_det_r"])
-    shrink = 1.0 - after["gap"] / before["gap"] if before["gap"] > 0 else 0.0
+    after = run.parts(augmented, run.records(augmented, fit.estimate, held=True))
+    chosen, scored = (before["selection"], after["selection"]), (before["scoring"], after["scoring"])
+    gain = chosen[1]["n"] * (chosen[0]["log_det_r"] - chosen[1]["log_det_r"])
+    selection_shrink, shrink = (1.0 - a["gap"] / b["gap"] if b["gap"] > 0 else 0.0 for b, a in (chosen, scored))
     match = loc.signature_match(tuple(getattr(effect, "signature", ()) or ()))
     raw = delta_bic + gain if th.gain_in_score else delta_bic
     score = raw * (1.0 + th.signature_weight * match) if raw > 0 else raw
-    run.say(f"  {name} ({stage}): dBIC {delta_bic:.1f}, held-out gain {gain:.1f}, shrink {shrink:.2f}, "
-            f"{seconds:.1f} s")
+    run.say(f"  {name} ({stage}): dBIC {delta_bic:.1f}, held-out gain {gain:.1f}, shrink {selection_shrink:.2f} "
+            f"(selection), {shrink:.2f} (scoring), {seconds:.1f} s")
     row = CandidateScore(
-        name, float(score), before["gap"], after["gap"], float(shrink), float(lr), float(delta_bic),
+        name, float(score), scored[0]["gap"], scored[1]["gap"], float(shrink), float(lr), float(delta_bic),
         float(gain), float(match), len(names), _parameter_table(augmented, fit, names), fit.log_det_r,
-        after["log_det_r"], after["nrmse"], after["z"], bool(fit.converged), fit.iterations, fit.n_simulations,
-        seconds, fit.message, fit.as_dict(), stage, list(fit.free_names))
+        chosen[1]["log_det_r"], chosen[1]["nrmse"], chosen[1]["z"], bool(fit.converged), fit.iterations,
+        fit.n_simulations, seconds, fit.message, fit.as_dict(), stage, list(fit.free_names),
+        shrink_se=run.shrink_se(*scored), selection_gap_before=chosen[0]["gap"], selection_gap_after=chosen[1]["gap"],
+        selection_shrink=float(selection_shrink))
     return row, after
 
 
@@ -509,7 +592,7 @@ def _candidate(run: _Diagnosis, reference: _Reference, name: str, effect, loc, f
             refit = _refit(run, reference, name, effect, **kwargs)
     except (IdentificationError, SimulationError, np.linalg.LinAlgError) as exc:
         run.say(f"  {name}: refit failed ({exc})")
-        return CandidateScore(name, float("-inf"), reference.figures["gap"], float("nan"), float("nan"),
+        return CandidateScore(name, float("-inf"), reference.figures["scoring"]["gap"], float("nan"), float("nan"),
                               float("nan"), float("nan"), float("nan"), 0.0, 0,
                               message=f"refit failed: {exc}", wall_time_s=time.perf_counter() - tc)
     stage = "screening" if kwargs.get("screening", True) else "final"
@@ -544,11 +627,11 @@ def _candidate_round(run: _Diagnosis, reference: _Reference, pool: dict[str, Any
 
 
 def _passes(th: Thresholds, best: CandidateScore | None, significant: bool) -> bool:
-    """The ``effect`` test: ΔBIC, held-out gain and (where the reference's held-out gap is
-    significant: an insignificant gap is noise, and its shrink no evidence) shrink."""
+    """The ``effect`` test on the selection part: ΔBIC, held-out gain and (where the reference's
+    held-out gap is significant: an insignificant gap is noise, and its shrink no evidence) shrink."""
     return (best is not None and best.delta_bic > th.bic_min
             and (th.held_out_gain_min is None or best.held_out_gain > th.held_out_gain_min)
-            and (best.shrink >= th.shrink_min or not significant))
+            and (best.selection_shrink >= th.shrink_min or not significant))
 
 
 def _forward_selection(run: _Diagnosis, nominal: _Reference, loc):
@@ -564,7 +647,7 @@ def _forward_selection(run: _Diagnosis, nominal: _Reference, loc):
         rounds.append(ranking)
         round_fits.append(fits)
         best = ranking[0] if ranking and np.isfinite(ranking[0].score) else None
-        if not _passes(run.strategy.thresholds, best, reference.figures["significant"]):
+        if not _passes(run.strategy.thresholds, best, reference.figures["selection"]["significant"]):
             break
         selected.append(best.effect)
         (model, _, fit, objective), figures = fits[best.effect]
@@ -574,19 +657,18 @@ def _forward_selection(run: _Diagnosis, nominal: _Reference, loc):
 
 def _after_model(run: _Diagnosis, rounds, selected, round_fits):
     """The model the gap is measured after: that of the last selected effect, else round 1's
-    best candidate. Returns (its CandidateScore, (model, fit), effect names of the model) or Nones."""
+    best candidate. Returns (its CandidateScore, (model, fit), its held-out figures of the
+    selection and scoring part) or Nones."""
     if selected:
-        r = len(selected) - 1
-        name, effects = selected[-1], list(selected)
+        r, name = len(selected) - 1, selected[-1]
     elif rounds and rounds[0] and np.isfinite(rounds[0][0].score):
         r, name = 0, rounds[0][0].effect
-        effects = [name]
     else:
-        return None, None, []
+        return None, None, None
     if name not in round_fits[r]:
-        return None, None, []
-    (model, _, fit, _), _ = round_fits[r][name]
-    return next(c for c in rounds[r] if c.effect == name), (model, fit), effects
+        return None, None, None
+    (model, _, fit, _), figures = round_fits[r][name]
+    return next(c for c in rounds[r] if c.effect == name), (model, fit), dict(figures)
 
 
 def _verdict(th: Thresholds, ranking: list[CandidateScore], significant: bool, structured: bool,
@@ -596,29 +678,37 @@ def _verdict(th: Thresholds, ranking: list[CandidateScore], significant: bool, s
     runner_up = ranking[1].score if len(ranking) > 1 and np.isfinite(ranking[1].score) else 0.0
     if _passes(th, best, significant):
         confident = (best.score >= th.margin * max(runner_up, 0.0)
-                     and (best.shrink >= th.shrink_confident or not significant)
+                     and (best.selection_shrink >= th.shrink_confident or not significant)
                      and loc_after is not None and not loc_after.structured and not loc_after_held.structured)
         return "effect", best.effect, "high" if confident else "low"
     if structured or significant:
-        return "unexplained", None, "high" if best is None or best.shrink < th.shrink_min / 2 else "low"
+        return "unexplained", None, "high" if best is None or best.selection_shrink < th.shrink_min / 2 else "low"
     return "none", None, "high"
 
 
-def _gap_summary(metric, before: dict, chosen: CandidateScore | None) -> dict[str, Any]:
-    """GAP.json ``gap``: the held-out gap before (nominal) and after (the model after)."""
-    after = chosen.gap_after if chosen else before["gap"]
+def _gap_summary(run: _Diagnosis, before: dict, after: dict | None, verdict: str) -> dict[str, Any]:
+    """GAP.json ``gap``. ``before``/``after``: held-out figures ("all", "selection", "scoring")
+    of the nominal model and of the model after (None: no candidate). The gap before and after
+    is on all held-out data; the shrink is scored on the part that did not select the winner,
+    signed and unclipped, with its block-bootstrap standard error, and only for an ``effect``
+    verdict (None otherwise)."""
+    b, a = before["all"], (after or before)["all"]
+    shown = verdict == "effect" and after is not None
+    b_score, a_score = before["scoring"], (after or before)["scoring"]
     return {
-        "metric": metric.description,
-        "before": before["gap"], "after": after,
-        "shrink": (1.0 - after / before["gap"] if before["gap"] > 0 else 0.0) if chosen else 0.0,
-        "z_before": before["z"],
-        "common_factors_before": before["factors"], "significant_before": before["significant"],
-        "z_after": chosen.gap_z_after if chosen else before["z"],
-        "nrmse_before": before["nrmse"], "nrmse_after": chosen.nrmse_after if chosen else before["nrmse"],
-        "log_det_R_before": before["log_det_r"],
-        "log_det_R_after": chosen.held_out_log_det_r if chosen else before["log_det_r"],
-        "per_channel_before": dict(before["per_channel"]),
-        "effect_of_after": chosen.effect if chosen else None,
+        "metric": run.strategy.metric.description,
+        "before": b["gap"], "after": a["gap"],
+        "shrink": (1.0 - a_score["gap"] / b_score["gap"] if b_score["gap"] > 0 else float("nan")) if shown else None,
+        "shrink_se": run.shrink_se(b_score, a_score) if shown else None,
+        "shrink_record": run.data.shrink_record,
+        "shrink_gap_before": b_score["gap"], "shrink_gap_after": a_score["gap"] if shown else None,
+        "selection_shrink": (1.0 - after["selection"]["gap"] / before["selection"]["gap"]
+                             if before["selection"]["gap"] > 0 else float("nan")) if shown else None,
+        "z_before": b["z"], "common_factors_before": b["factors"], "significant_before": b["significant"],
+        "significant_selection": before["selection"]["significant"],
+        "z_after": a["z"], "nrmse_before": b["nrmse"], "nrmse_after": a["nrmse"],
+        "log_det_R_before": b["log_det_r"], "log_det_R_after": a["log_det_r"],
+        "per_channel_before": dict(b["per_channel"]),
     }
 
 
@@ -664,7 +754,7 @@ def diagnose(
                            f"choose from {', '.join(catalogue)}")
         catalogue = {c: catalogue[c] for c in candidates}
     run = _Diagnosis(strategy, settings, _split(measurements, validation, strategy, settings), base, catalogue,
-                     progress or (lambda _line: None))
+                     progress or (lambda _line: None), seed=seed)
     nominal, loc_est, loc_held = _fit_nominal(run)
     # where the gap shows most clearly: a gap in extrapolation shows on held-out data only
     if strategy.where_source == "held-out" or loc_held.z > loc_est.z:
@@ -672,18 +762,20 @@ def diagnose(
     else:
         loc, where_source = loc_est, "estimation"
     rounds, selected, round_fits = _forward_selection(run, nominal, loc)
-    chosen, after, effects = _after_model(run, rounds, selected, round_fits)
+    chosen, after, after_figures = _after_model(run, rounds, selected, round_fits)
     loc_after = loc_after_held = None
     effect_parameters: dict[str, dict[str, float]] = {}
     if after is not None:
         model, fit = after
+        held_records = run.records(model, fit.estimate, held=True)
         loc_after = run.localise(model, fit.estimate, run.records(model, fit.estimate, held=False), held=False)
-        loc_after_held = run.localise(model, fit.estimate, run.records(model, fit.estimate, held=True), held=True)
+        loc_after_held = run.localise(model, fit.estimate, held_records, held=True)
         run.n_sims += len(run.data.estimation) + len(run.data.held)
+        after_figures["all"] = run.held_out_figures(model, held_records)
         effect_parameters = _parameter_table(model, fit, _effect_parameter_names(model, base))
     ranking = rounds[0] if rounds else []
     before = nominal.figures
-    verdict, effect, confidence = _verdict(strategy.thresholds, ranking, before["significant"],
+    verdict, effect, confidence = _verdict(strategy.thresholds, ranking, before["selection"]["significant"],
                                            loc_est.structured or loc_held.structured, loc_after, loc_after_held)
     fit = nominal.fit
     nominal_json = {"log_det_R": fit.log_det_r, "objective": fit.objective, "converged": fit.converged,
@@ -692,9 +784,11 @@ def diagnose(
     d = run.data
     return GapResult(
         concept=concept, verdict=verdict, effect=effect, confidence=confidence, ranking=ranking,
-        where={"channels": loc.where_channels(), "regimes": loc.where_regimes}, gap=_gap_summary(strategy.metric, before, chosen),
+        where={"channels": loc.where_channels(), "regimes": loc.where_regimes},
+        gap={**_gap_summary(run, before, after_figures, verdict), "effect_of_after": chosen.effect if chosen else None},
         localization=loc_est, localization_held_out=loc_held, localization_after=loc_after,
-        localization_after_held_out=loc_after_held, where_source=where_source, held_out=d.description,
+        localization_after_held_out=loc_after_held, where_source=where_source,
+        held_out=d.description,
         channels=list(d.channels), held_out_channels=list(d.held_channels), nominal=nominal_json,
         effect_parameters=effect_parameters, thresholds=_thresholds_json(strategy),
         wall_time_s=time.perf_counter() - t0, n_simulations=run.n_sims, seed=seed,

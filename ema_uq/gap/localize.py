@@ -261,13 +261,18 @@ def systematic_nrmse(segments: Sequence[np.ndarray], spread: np.ndarray) -> tupl
     (σ from first differences) — infinite when common factors were found (BIC).
     """
     parts, sigma, factors = systematic_products(segments)
-    p = np.concatenate(parts)
+    return nrmse_of_products(np.concatenate(parts), sigma, factors.n_factors, spread)
+
+
+def nrmse_of_products(p: np.ndarray, sigma: np.ndarray, n_factors: int,
+                      spread: np.ndarray) -> tuple[float, np.ndarray, float, int]:
+    """:func:`systematic_nrmse` from the systematic products ``p`` (n, m) (NaN rows are left out)."""
     p = p[np.all(np.isfinite(p), axis=1)]
     mean_p = p.mean(axis=0)
     per_channel = np.sqrt(np.maximum(mean_p, 0.0)) / spread
     total = float(np.sqrt(max(float(np.mean(mean_p / spread ** 2)), 0.0)))
     z = float(np.sum(p / sigma ** 2) / np.sqrt(p.size * LAG_NORM))
-    return total, per_channel, z, factors.n_factors
+    return total, per_channel, z, n_factors
 
 
 # ----------------------------------------------------------------------------------------

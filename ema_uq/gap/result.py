@@ -18,7 +18,12 @@ class CandidateScore:
     """One candidate effect's refit and scores (see the module docstring for each figure).
 
     ``parameters`` maps each effect parameter to {"estimate", "std" (Cramér-Rao), "unit"};
-    gaps are held-out systematic NRMSE, ``nrmse_*`` the plain held-out NRMSE (channel mean).
+    gaps are the strategy's held-out gap metric (default: systematic NRMSE). ``gap_before``,
+    ``gap_after`` and ``shrink`` = 1 - after / before (signed, unclipped) are scored on the
+    held-out part that did not select the winner, ``shrink_se`` is its block-bootstrap standard
+    error; ``selection_gap_*``, ``selection_shrink``, ``held_out_gain``, ``held_out_log_det_r``,
+    ``nrmse_after`` (plain NRMSE, channel mean) and ``gap_z_after`` are on the selection part,
+    the one the verdict reads.
     """
 
     effect: str
@@ -44,6 +49,10 @@ class CandidateScore:
     estimate: dict[str, float] = field(default_factory=dict, repr=False)
     stage: str = ""
     free_parameters: list[str] = field(default_factory=list, repr=False)
+    shrink_se: float = float("nan")
+    selection_gap_before: float = float("nan")
+    selection_gap_after: float = float("nan")
+    selection_shrink: float = float("nan")
 
     def to_json(self) -> dict[str, Any]:
         out = {k: _finite(v) for k, v in vars(self).items()}
@@ -134,16 +143,17 @@ class GapResult:
                  f"    held-out data      = {self.held_out}",
                  f"    where (channels)   = {', '.join(self.where['channels']) or '-'}  ({self.where_source} data)",
                  f"    where (regimes)    = {', '.join(self.where['regimes']) or '-'}",
-                 f"    gap ({self.gap['metric'].split(':')[0]}) {self.gap['before']:.4g} -> {self.gap['after']:.4g} "
-                 f"(shrink {self.gap['shrink']:.2f}); plain NRMSE {self.gap['nrmse_before']:.4g} -> "
-                 f"{self.gap['nrmse_after']:.4g}",
+                 f"    gap ({self.gap['metric'].split(':')[0]}) {self.gap['before']:.4g} -> {self.gap['after']:.4g}"
+                 f"; plain NRMSE {self.gap['nrmse_before']:.4g} -> {self.gap['nrmse_after']:.4g}",
+                 *self._shrink_line(),
                  f"    wall time          = {self.wall_time_s:.1f} s, {self.n_simulations} simulations",
-                 "[[Ranking]]",
+                 "[[Ranking]] (gaps and shrink on the scoring part, the held-out gain on the selection part)",
                  f"    {'effect':<24} {'score':>10} {'dBIC':>10} {'held-out':>10} {'sig':>5} "
-                 f"{'gap before':>10} {'after':>9} {'shrink':>7}"]
+                 f"{'gap before':>10} {'after':>9} {'shrink':>7} {'+/-':>5}"]
         for c in self.ranking:
             lines.append(f"    {c.effect:<24} {c.score:>10.1f} {c.delta_bic:>10.1f} {c.held_out_gain:>10.1f} "
-                         f"{c.signature_match:>5.2f} {c.gap_before:>10.4g} {c.gap_after:>9.4g} {c.shrink:>7.2f}"
+                         f"{c.signature_match:>5.2f} {c.gap_before:>10.4g} {c.gap_after:>9.4g} {c.shrink:>7.2f} "
+                         f"{c.shrink_se:>5.2f}"
                          + ("" if not c.message or c.converged else f"  ({c.message[:60]})"))
         for r, rnd in enumerate(self.further_rounds, 2):
             lines.append(f"[[Round {r}]] added to {' + '.join(self.selected[:r - 1])}")
@@ -156,6 +166,15 @@ class GapResult:
             for name, p in self.effect_parameters.items():
                 lines.append(f"    {name:<24} = {p['estimate']:.6g} +/- {p['std']:.3g} {p.get('unit', '')}")
         return "\n".join(lines)
+
+    def _shrink_line(self) -> list[str]:
+        """The honest shrink, shown for an ``effect`` verdict only."""
+        shrink = self.gap.get("shrink")
+        if self.verdict != "effect" or shrink is None:
+            return []
+        se = self.gap.get("shrink_se")
+        return [f"    shrink             = {shrink:.3f} +/- {se if se is not None else float('nan'):.3f} "
+                f"(scored on the {self.gap.get('shrink_record', 'held-out data')}, not used to select the winner)"]
 
     def to_json(self) -> dict[str, Any]:
         return _finite({
@@ -216,7 +235,7 @@ def _candidate_from_json(data: Mapping[str, Any]) -> CandidateScore:
     c = dict(data)
     for key in ("score", "gap_before", "gap_after", "shrink", "likelihood_ratio", "delta_bic",
                 "held_out_gain", "signature_match", "log_det_r", "held_out_log_det_r", "nrmse_after",
-                "gap_z_after"):
+                "gap_z_after", "shrink_se", "selection_gap_before", "selection_gap_after", "selection_shrink"):
         if key in c:
             c[key] = float(_unfinite(c[key]))
     return CandidateScore(**c)

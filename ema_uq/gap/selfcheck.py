@@ -330,20 +330,22 @@ def is_correct(case: Case, result: GapResult) -> bool:
     return result.verdict == "unexplained" or result.confidence == "low"
 
 
-def run_case(case: Case, settings: DiagnosisSettings = DiagnosisSettings()) -> CaseOutcome:
+def run_case(case: Case, settings: DiagnosisSettings | None = None) -> CaseOutcome:
     estimation, held_out, _truth = case_data(case)
     t0 = time.perf_counter()
     result = diagnose([estimation], [held_out], settings=settings, seed=case.seed)
     top = [{"effect": c.effect, "score": c.score, "delta_bic": c.delta_bic, "held_out_gain": c.held_out_gain,
             "shrink": c.shrink, "signature_match": c.signature_match} for c in result.ranking[:3]]
-    return CaseOutcome(case, result.verdict, result.effect, result.confidence, float(result.gap["shrink"]),
+    shrink = result.gap["shrink"]          # scored on data that did not select the winner; None unless effect
+    return CaseOutcome(case, result.verdict, result.effect, result.confidence,
+                       float("nan") if shrink is None else float(shrink),
                        float(result.gap["before"]), float(result.gap["after"]), top, is_correct(case, result),
                        time.perf_counter() - t0, dict(result.effect_parameters), float(result.gap["z_before"]),
                        bool(result.localization.structured))
 
 
 def self_check(*, seed: int = DEFAULT_SEED, quick: bool = False, concepts: Sequence[str] = ("htls", "lths"),
-               cases: Sequence[Case] | None = None, settings: DiagnosisSettings = DiagnosisSettings(),
+               cases: Sequence[Case] | None = None, settings: DiagnosisSettings | None = None,
                progress: Callable[[str], None] | None = None) -> SelfCheckResult:
     """Run the blind self-check (``quick``: 4 HT/LS cases) and score it."""
     for concept in concepts:

@@ -22,7 +22,7 @@ import numpy as np
 
 from ..experiments import Measurement
 from ..statistics import START_MULTIPLES
-from .localize import ResidualRecord, localize, systematic_nrmse
+from .localize import ResidualRecord, localize, nrmse_of_products, systematic_products
 
 
 @dataclass(frozen=True)
@@ -71,15 +71,19 @@ class Thresholds:
 class GapMetric(Protocol):
     """The held-out gap of a fitted model. ``figures`` returns at least ``gap`` (the metric),
     ``z`` (its significance in noise σ, NaN when the metric has none), ``factors`` (common
-    error factors), ``per_channel`` ({name: value}) and ``significant`` (the gap stands out of
-    the noise) for residual ``records`` of ``model`` on ``measurements`` (same order) in
-    ``channels``, their complete residual stretches ``segments`` [(n_i, m)] and channel scales
-    ``spread`` (m,)."""
+    error factors), ``per_channel`` ({name: value}), ``significant`` (the gap stands out of
+    the noise) and ``terms``: per-sample additive terms (n, k) whose column sums give the gap
+    through ``combine`` (the block bootstrap of the shrink resamples their block sums), for
+    residual ``records`` of ``model`` on ``measurements`` (same order) in ``channels``, their
+    complete residual stretches ``segments`` [(n_i, m)] and channel scales ``spread`` (m,)."""
 
     description: str
 
     def figures(self, records: Sequence[ResidualRecord], measurements: Sequence[Measurement], model,
                 channels: Sequence[str], segments: Sequence[np.ndarray], spread: np.ndarray) -> dict[str, Any]: ...
+
+    def combine(self, sums: np.ndarray) -> np.ndarray:
+        """The gap from column sums of ``terms`` (..., k)."""
 
 
 @dataclass(frozen=True)
@@ -91,9 +95,18 @@ class SystematicNrmse:
     description: str = "held-out systematic NRMSE: sqrt(channel mean of short-lag residual products / mean square)"
 
     def figures(self, records, measurements, model, channels, segments, spread) -> dict[str, Any]:
-        gap, per_channel, z, factors = systematic_nrmse(segments, spread)
+        parts, sigma, found = systematic_products(segments)
+        p = np.concatenate(parts)
+        gap, per_channel, z, factors = nrmse_of_products(p, sigma, found.n_factors, spread)
+        # per sample: its normalised systematic energy (channel mean) and a count
+        energy = np.mean(p / spread ** 2, axis=1)
+        ok = np.isfinite(energy)
+        terms = np.column_stack([np.where(ok, energy, 0.0), ok.astype(float)])[ok]
         return {"gap": gap, "z": z, "factors": factors, "per_channel": dict(zip(channels, map(float, per_channel))),
-                "significant": bool(z > self.z_significant or factors > 0)}
+                "significant": bool(z > self.z_significant or factors > 0), "terms": terms}
+
+    def combine(self, sums: np.ndarray) -> np.ndarray:
+        return np.sqrt(np.maximum(sums[..., 0] / sums[..., 1], 0.0))
 
 
 def localize_residual(records, channels, model, theta, measurements, spread, constants=None):

@@ -85,6 +85,7 @@ def gap_ledger(result):
     verdict = {"effect": f"effect {result.effect} ({result.confidence} confidence)", "none": "no significant gap",
                "unexplained": "unexplained gap"}[result.verdict]
     fig.suptitle(f"Gap ledger, {result.concept}: {verdict}; held-out systematic NRMSE "
-                 f"{result.gap['before']:.3g} -> {result.gap['after']:.3g} (shrink {result.gap['shrink']:.2f})",
+                 f"{result.gap['before']:.3g} -> {result.gap['after']:.3g}"
+                 + ("" if result.gap.get("shrink") is None else f" (shrink {result.gap['shrink']:.2f})"),
                  fontsize=10)
     return fig

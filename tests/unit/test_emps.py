@@ -354,6 +354,9 @@ def test_gap_names_the_loop_delay(estimation, validation):
     assert gap.gap["after"] == pytest.approx(5.61, abs=0.1)
     ranking = gap.to_json()["ranking"]
     assert ranking[0]["effect"] == "actuation_delay" and ranking[0]["shrink"] > 0.35
+    # the reported shrink is scored on the second half of the validation record (the first selects)
+    assert gap.gap["shrink_record"].startswith("second half of held-out record")
+    assert gap.gap["shrink"] > 0.35 and 0 < gap.gap["shrink_se"] < 0.05
     assert ranking[1]["effect"] == "stribeck" and abs(ranking[1]["shrink"]) < 0.01
 
 

@@ -207,6 +207,13 @@ def test_effect_is_found_with_its_size(effect_result):
     assert {"M_TSER1", "M_TSER2"} <= set(r.where["channels"])
     assert r.localization.structured and not r.localization_after.structured
     assert not r.localization_after_held_out.structured
+    # honest shrink: scored on the second half of the validation record, which did not select
+    g = r.gap
+    assert g["shrink_record"].startswith("second half of held-out record validation")
+    assert g["shrink"] == pytest.approx(1 - g["shrink_gap_after"] / g["shrink_gap_before"])
+    assert g["shrink"] > 0.8 and 0 < g["shrink_se"] < 0.2 and g["selection_shrink"] > 0.8
+    assert best.shrink == pytest.approx(g["shrink"]) and best.selection_shrink == pytest.approx(g["selection_shrink"])
+    assert "scored on the second half" in r.summary()
 
 
 def test_clean_data_give_none(none_result):
@@ -215,6 +222,25 @@ def test_clean_data_give_none(none_result):
     assert not r.localization.structured
     assert all(c.delta_bic < 10 for c in r.ranking)
     assert r.held_out.startswith("last 30%")
+    # no effect: no shrink shown; the candidates' own shrinks are signed, with their error
+    assert r.gap["shrink"] is None and r.to_json()["gap"]["shrink"] is None and "shrink    " not in r.summary()
+    assert all(np.isfinite(c.shrink) and c.shrink_se > 0 for c in r.ranking)
+
+
+def test_selection_and_scoring_parts_of_the_held_out_data():
+    from ema_uq.gap.attribute import _selection_and_scoring
+
+    one = synthesize("htls", deploy_retract().slice(0, 400), noise=0.02, seed=1)
+    parts, record = _selection_and_scoring([one], ["y1", "y2"])
+    (first,), (second,) = parts["selection"], parts["scoring"]
+    assert not np.any(first & second) and np.all(first | second)
+    assert first.sum() == 200 and np.flatnonzero(first).max() < np.flatnonzero(second).min()
+    assert record.startswith("second half of held-out record")
+    two = [one, synthesize("htls", deploy_retract().slice(0, 300), noise=0.02, seed=2)]
+    parts, record = _selection_and_scoring(two, ["y1"])
+    assert parts["selection"][0].all() and not parts["selection"][1].any()
+    assert parts["scoring"][1].all() and not parts["scoring"][0].any()
+    assert record == f"held-out record {two[1].experiment.name}"
 
 
 def test_out_of_catalogue_current_offset_is_unexplained():
@@ -235,6 +261,7 @@ def test_gap_json_contract_and_round_trip(effect_result, tmp_path):
         assert {"effect", "score", "gap_before", "gap_after", "shrink"} <= set(row)
         assert row["shrink"] == pytest.approx(1 - row["gap_after"] / row["gap_before"])
     assert set(data["where"]) == {"channels", "regimes"}
+    assert {"shrink", "shrink_se", "shrink_record"} <= set(data["gap"])
     path = tmp_path / "gap.json"
     io.write_json(path, data)
     back = GapResult.from_json(json.loads(path.read_text()))
