@@ -827,29 +827,22 @@ def _zoh_step(x, dx, props, xt):
 
 
 INTEGRATORS = ("dopri5", "hybrid", "rk4")
-#: error scale of the effects' extra states (typical magnitude: play travel [rad], shaft twist
-#: [rad], twist rate [rad/s]) and the parameter at whose zero the state feeds nothing (frozen)
-EFFECT_STATE_ERROR = {
-    "backlash_b": (0.1, "backlash_delta"), "backlash_b1": (0.1, "backlash_delta"),
-    "backlash_b2": (0.1, "backlash_delta"),
-    "shaft_twist": (0.01, "shaft_compliance_period"), "shaft_twist_rate": (1.0, "shaft_compliance_period"),
-}
-
-
 def error_scales(model: Model, thetas: np.ndarray) -> np.ndarray:
     """(n_sets, n_states) absolute error scales of the adaptive integrator per parameter set:
-    the concept's ``state_scales``, then the effects' extra states, -1 where a state is frozen."""
-    base = model.base_model
-    if len(base.state_scales) != base.n_states:
-        raise SimulationError(f"concept {model.name} has no state_scales for its {base.n_states} states; "
-                              "give Model.state_scales or use integrator='rk4'")
+    ``model.state_scales`` (an augmented model's include its effects' extra states), -1 where
+    an extra state is frozen (its effect's ``magnitude`` parameter is zero in that set)."""
+    if len(model.state_scales) != model.n_states:
+        raise SimulationError(f"concept {model.name} has no state_scales for its {model.base_model.n_states} "
+                              "states; give Model.state_scales or use integrator='rk4'")
     scales = np.empty((thetas.shape[0], model.n_states))
-    scales[:, :base.n_states] = base.state_scales
-    for j in range(base.n_states, model.n_states):
-        scale, switch = EFFECT_STATE_ERROR.get(model.states[j], (1.0, None))
-        scales[:, j] = scale
-        if switch is not None and switch in model.parameters:
-            scales[thetas[:, model.parameters.index(switch)] == 0.0, j] = -1.0
+    scales[:] = model.state_scales
+    catalogue = model.base_model.effect_catalogue
+    for name in model.effects:
+        effect = catalogue[name]
+        extra = [model.states.index(s) for s in effect.extra_states.get(model.name, ())]
+        if extra and effect.magnitude is not None:
+            frozen = thetas[:, model.parameters.index(effect.magnitude)] == 0.0
+            scales[np.ix_(frozen, extra)] = -1.0
     return scales
 
 

@@ -2,10 +2,17 @@
 
 ``evaluate_htls_effects`` / ``evaluate_lths_effects`` have the signature of the nominal
 ``evaluate(x, u, th, c, dx, y)``. Which effects are active, where their parameters sit in
-``th`` and their extra states in ``x`` is read from the layout table that
-:func:`~ema_uq.models.effects.augment_ema` appends to the kernel constants ``c`` (see
-``effects.LAYOUT_SIZE`` / ``EFFECT_CONSTANT_NAMES``). The physics is documented in
-``effects.py``.
+``th`` and their extra states in ``x``, and the effects' kernel constants are read from the
+layout table that :func:`~ema_uq.models.effects.augment_ema` appends to the kernel constants
+``c``, at the offsets ``effects.LAYOUT`` computes from the effect definitions (``FX_*`` below,
+module constants that numba compiles in). The physics is documented in ``effects.py``.
+
+A new effect: its :class:`~ema_uq.models.effects.Effect` in ``effects.py`` (parameters,
+extra states with their error scales, kernel constants per concept) and its physics here,
+reading its offsets ``FX_<EFFECT> = LAYOUT["<effect>"]`` (state: + 1) and ``LAYOUT["<effect>_<constant>"]``.
+Numba caches compiled kernels per source file: after changing an effect's parameters or
+constants in ``effects.py`` alone, delete the caches (``*.nbi``, ``*.nbc``) so the kernels
+compile the new offsets.
 
 Every effect enters so that its ``off`` values give back the nominal arithmetic exactly
 (factors of exactly 1.0, additions of exactly 0.0, unchanged summation order), which is
@@ -21,6 +28,7 @@ from numba import njit
 from . import htls as H
 from . import lths as L
 from .components import brake_torque
+from .effects import LAYOUT
 
 TWO_PI = 2.0 * math.pi
 #: tanh(z) rounds to exactly ±1.0 in double precision for |z| > 19.06: skipping the call there
@@ -30,9 +38,19 @@ TANH_SATURATED = 19.1
 #: kernel positions of the layout table (after the concept's derived constants)
 HTLS_FX = H.D_INV_COS_B2 + 1
 LTHS_FX = L.D_INV_COS_B2 + 1
-# offsets inside the table: (parameter, state) position per effect in effects.EFFECT_ORDER
-FX_BACKLASH, FX_STRIBECK, FX_COMPLIANCE, FX_UJOINT, FX_LOAD_FRICTION, FX_DELAY, FX_RIPPLE = (0, 2, 4, 6, 8, 10, 12)
-FX_CONSTANTS = 14  # then: backlash relaxation [s], softness [1], load fraction [1], mode omega max [rad/s], periods
+# offsets inside the table (effects.LAYOUT): the effect's first parameter position in th (its
+# first extra state in x one further, -1 when the effect is off), then its kernel constants
+FX_BACKLASH = LAYOUT["backlash"]
+FX_BACKLASH_RELAXATION = LAYOUT["backlash_relaxation"]      # [s]
+FX_BACKLASH_SOFTNESS = LAYOUT["backlash_softness"]          # [1]
+FX_STRIBECK = LAYOUT["stribeck"]
+FX_COMPLIANCE = LAYOUT["shaft_compliance"]
+FX_LOAD_FRACTION = LAYOUT["shaft_compliance_load_fraction"]  # [1]
+FX_MODE_OMEGA_MAX = LAYOUT["shaft_compliance_mode_omega_max"]  # [rad/s]
+FX_UJOINT = LAYOUT["ujoint_kinematics"]
+FX_LOAD_FRICTION = LAYOUT["load_dependent_friction"]
+FX_RIPPLE = LAYOUT["torque_ripple"]
+FX_RIPPLE_PERIODS = LAYOUT["torque_ripple_periods"]         # periods per motor revolution
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -165,8 +183,9 @@ def evaluate_htls_effects(x, u, th, c, dx, y):
     p_uj = int(c[t + FX_UJOINT])
     p_ld = int(c[t + FX_LOAD_FRICTION])
     p_tr = int(c[t + FX_RIPPLE])
-    k = t + FX_CONSTANTS
-    relaxation, softness, load_fraction, omega_max, periods = c[k], c[k + 1], c[k + 2], c[k + 3], c[k + 4]
+    relaxation, softness = c[t + FX_BACKLASH_RELAXATION], c[t + FX_BACKLASH_SOFTNESS]
+    load_fraction, omega_max = c[t + FX_LOAD_FRACTION], c[t + FX_MODE_OMEGA_MAX]
+    periods = c[t + FX_RIPPLE_PERIODS]
 
     eps = c[H.C_OMEGA_EPS]
     i_tp1 = c[H.C_I_TP1]
@@ -275,8 +294,9 @@ def evaluate_lths_effects(x, u, th, c, dx, y):
     p_uj = int(c[t + FX_UJOINT])
     p_ld = int(c[t + FX_LOAD_FRICTION])
     p_tr = int(c[t + FX_RIPPLE])
-    k = t + FX_CONSTANTS
-    relaxation, softness, load_fraction, omega_max, periods = c[k], c[k + 1], c[k + 2], c[k + 3], c[k + 4]
+    relaxation, softness = c[t + FX_BACKLASH_RELAXATION], c[t + FX_BACKLASH_SOFTNESS]
+    load_fraction, omega_max = c[t + FX_LOAD_FRACTION], c[t + FX_MODE_OMEGA_MAX]
+    periods = c[t + FX_RIPPLE_PERIODS]
 
     eps = c[L.C_OMEGA_EPS]
     i_mg = c[L.C_I_MG]

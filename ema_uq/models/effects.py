@@ -74,12 +74,13 @@ at multiples of the sample time.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING, Callable, Mapping, Sequence
 
 import numpy as np
 
 from ..params import Parameter, ParameterError, ParameterSet
+from .base import KERNEL_IDS
 
 if TYPE_CHECKING:  # pragma: no cover
     from .base import Model
@@ -101,6 +102,17 @@ class Effect:
     where an ML refit of the augmented model starts them; ``off`` makes the effect vanish
     (an augmented model at ``off`` reproduces the nominal outputs). ``signature`` lists the
     regimes (:data:`SIGNATURES`) where its residuals show.
+
+    How the effect enters the compiled kernels of ``effect_kernels.py`` is declared here too,
+    so that a new effect needs only its definition and its physics: ``extra_states`` (concept
+    -> names of the states it adds, in kernel order), ``state_scales`` (each extra state's
+    typical magnitude in its units, the adaptive integrator's error scale), ``magnitude`` (the
+    parameter that sets the effect's size: at its zero the effect vanishes and its extra
+    states feed nothing, so the adaptive integrator leaves them out of its error norm),
+    ``constants`` (concept -> fixed kernel constants, short name -> value, the same names for
+    every concept; :data:`LAYOUT` gives their kernel positions) and ``postprocess`` (an
+    output-side step ``f(model, thetas, time, out) -> out`` run by ``simulate_batch`` after
+    the kernel).
     """
 
     name: str
@@ -109,6 +121,11 @@ class Effect:
     start: dict[str, float]
     off: dict[str, float]
     signature: tuple[str, ...]
+    extra_states: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
+    state_scales: Mapping[str, float] = field(default_factory=dict)
+    magnitude: str | None = None
+    constants: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
+    postprocess: Callable | None = None
 
     def __post_init__(self) -> None:
         names = [p.name for p in self.parameters]
@@ -127,6 +144,29 @@ class Effect:
         if unknown:
             raise EffectError(f"effect {self.name}: unknown signature regime(s) {', '.join(unknown)}; "
                               f"use {', '.join(SIGNATURES)}")
+        self._check_kernel_facts(names)
+
+    def _check_kernel_facts(self, names: list[str]) -> None:
+        """Every extra state has an error scale, ``magnitude`` is a parameter that is zero at
+        ``off``, and every concept gives the same kernel constants."""
+        for concept, states in self.extra_states.items():
+            unscaled = [s for s in states if not self.state_scales.get(s, 0.0) > 0.0]
+            if unscaled:
+                raise EffectError(f"effect {self.name}: extra state {unscaled[0]} of concept {concept} has no "
+                                  "positive error scale; give it in state_scales")
+        if self.magnitude is not None and self.off.get(self.magnitude, None) != 0.0:
+            raise EffectError(f"effect {self.name}: magnitude {self.magnitude!r} must be a parameter that is 0 "
+                              f"at off; parameters: {', '.join(names)}")
+        for concept, values in self.constants.items():
+            if tuple(values) != self.constant_names:
+                raise EffectError(f"effect {self.name}: concept {concept} gives kernel constants "
+                                  f"{', '.join(values)}; every concept must give {', '.join(self.constant_names)}")
+
+    @property
+    def constant_names(self) -> tuple[str, ...]:
+        """Short names of the effect's kernel constants (``relaxation`` -> ``backlash_relaxation``
+        in :data:`LAYOUT`)."""
+        return tuple(next(iter(self.constants.values()), ()))
 
     @property
     def parameter_names(self) -> tuple[str, ...]:
@@ -151,6 +191,29 @@ class Effect:
                           f"{', '.join(self.short_names)} (or {', '.join(self.parameter_names)})")
 
 
+def delay_outputs(model: "Model", thetas: np.ndarray, time: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """``sensor_delay``: every channel of set s lags by tau_s (linear interpolation between
+    samples; samples with t < tau hold the first value). thetas (n_sets, n_params), out
+    (n_sets, n_samples, n_outputs), modified in place and returned. tau = 0 leaves a set untouched."""
+    taus = thetas[:, model.parameters.index("sensor_delay_tau")]
+    dt = float(time[1] - time[0])
+    n = out.shape[1]
+    k = np.arange(n)
+    for s, tau in enumerate(taus):
+        if tau == 0.0:
+            continue
+        lag = tau / dt
+        whole = int(math.floor(lag))
+        frac = lag - whole
+        src = k - lag  # fractional sample index of t_k - tau
+        i0 = np.clip(k - whole, 0, n - 1)      # sample at or after t_k - tau
+        i1 = np.clip(k - whole - 1, 0, n - 1)  # sample before it
+        delayed = (1.0 - frac) * out[s, i0] + frac * out[s, i1]
+        delayed[src <= 0.0] = out[s, 0]
+        out[s] = delayed
+    return out
+
+
 def _p(name, unit, nominal, lower, upper, description) -> Parameter:
     return Parameter(name, unit, nominal, lower, upper, free=True, description=description)
 
@@ -166,7 +229,12 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (
         (_p("backlash_delta", "rad", 0.02, 0.0, 1.0,
             "half play of the gear stage, referred to the screw shaft (carriage lost motion 2δ r tanγ)"),),
         start={"backlash_delta": 0.002}, off={"backlash_delta": 0.0},
-        signature=("reversal", "direction", "low_speed")),
+        signature=("reversal", "direction", "low_speed"), magnitude="backlash_delta",
+        # one play per bevel gear on HT/LS, one ahead of both stations on LT/HS (travel b [rad])
+        extra_states={"htls": ("backlash_b1", "backlash_b2"), "lths": ("backlash_b",)},
+        state_scales={"backlash_b1": 0.1, "backlash_b2": 0.1, "backlash_b": 0.1},
+        # play relaxation [s] and clamp softness [1]
+        constants={"htls": {"relaxation": 2e-3, "softness": 0.05}, "lths": {"relaxation": 1e-3, "softness": 0.05}}),
     Effect(
         "stribeck",
         "Coulomb friction rising near zero speed: C(v) = C (1 + ρ exp(-(v/v_s)²)) on every Coulomb term",
@@ -174,7 +242,7 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (
          _p("stribeck_speed", "rad/s", 1.0, 1e-3, 100.0, "Stribeck speed v_s, referred to the screw shaft")),
         start={"stribeck_ratio": 0.05, "stribeck_speed": 1.0},
         off={"stribeck_ratio": 0.0, "stribeck_speed": 1.0},
-        signature=("low_speed", "reversal")),
+        signature=("low_speed", "reversal"), magnitude="stribeck_ratio"),
     Effect(
         "shaft_compliance",
         "torsional spring and damper between motor and drive train (two-inertia mode of period T, "
@@ -184,7 +252,12 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (
          _p("shaft_compliance_zeta", "1", 0.05, 1e-3, 5.0, "damping ratio of the torsional mode")),
         start={"shaft_compliance_period": 0.0044, "shaft_compliance_zeta": 0.05},
         off={"shaft_compliance_period": 0.0, "shaft_compliance_zeta": 0.05},
-        signature=("high_acceleration", "reversal", "periodic")),
+        signature=("high_acceleration", "reversal", "periodic"), magnitude="shaft_compliance_period",
+        extra_states={"htls": ("shaft_twist", "shaft_twist_rate"), "lths": ("shaft_twist", "shaft_twist_rate")},
+        state_scales={"shaft_twist": 0.01, "shaft_twist_rate": 1.0},  # [rad], [rad/s]
+        # load inertia fraction [1], fastest resolved torsional mode (1 / the concept's RK4 step) [rad/s]
+        constants={"htls": {"load_fraction": 0.5, "mode_omega_max": 1.0 / 5e-4},
+                   "lths": {"load_fraction": 0.3, "mode_omega_max": 1.0 / 2e-4}}),
     Effect(
         "ujoint_kinematics",
         "exact U-joint speed factor g_U(θ) of eq. 8: speed and torque ripple at twice the shaft rotation",
@@ -193,19 +266,19 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (
          _p("ujoint_kinematics_phase", "rad", 0.0, -TWO_PI, TWO_PI, "yoke phase of the U-joints at θ = 0")),
         start={"ujoint_kinematics_scale": 0.1, "ujoint_kinematics_phase": 0.0},
         off={"ujoint_kinematics_scale": 0.0, "ujoint_kinematics_phase": 0.0},
-        signature=("periodic", "high_load")),
+        signature=("periodic", "high_load"), magnitude="ujoint_kinematics_scale"),
     Effect(
         "load_dependent_friction",
         "ball-screw Coulomb friction growing with the carried load: C_TS + μ r |F_ER|",
         (_p("load_dependent_friction_mu", "1", 0.005, 0.0, 0.5, "load coefficient μ of the ball-screw friction"),),
         start={"load_dependent_friction_mu": 2.5e-4}, off={"load_dependent_friction_mu": 0.0},
-        signature=("high_load", "direction")),
+        signature=("high_load", "direction"), magnitude="load_dependent_friction_mu"),
     Effect(
         "sensor_delay",
         "every measured channel lags the true signal by τ",
         (_p("sensor_delay_tau", "s", 0.012, 0.0, 0.5, "delay of the measured channels"),),
         start={"sensor_delay_tau": 0.001}, off={"sensor_delay_tau": 0.0},
-        signature=("delay", "high_acceleration")),
+        signature=("delay", "high_acceleration"), magnitude="sensor_delay_tau", postprocess=delay_outputs),
     Effect(
         "torque_ripple",
         "motor cogging / torque ripple k_n A sin(n_p θ + φ), periodic in the motor angle",
@@ -214,7 +287,8 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (
          _p("torque_ripple_phase", "rad", 0.0, -TWO_PI, TWO_PI, "ripple phase at θ = 0")),
         start={"torque_ripple_amplitude": 0.05, "torque_ripple_phase": 0.0},
         off={"torque_ripple_amplitude": 0.0, "torque_ripple_phase": 0.0},
-        signature=("periodic", "low_speed")),
+        signature=("periodic", "low_speed"), magnitude="torque_ripple_amplitude",
+        constants={"htls": {"periods": 6.0}, "lths": {"periods": 4.0}}),  # ripple periods per motor revolution
 )}
 
 #: Kernel order of the catalogue effects (the layout table of the augmented kernels).
@@ -262,43 +336,79 @@ def effect_parameters(names: Sequence[str], catalogue: Mapping[str, Effect] | No
 # --------------------------------------------------------------------------------------
 # augmentation of the EMA concepts (htls, lths); EMPS brings its own augment function
 # --------------------------------------------------------------------------------------
-#: Kernel layout appended to the augmented model's derived constants: for each effect of
-#: EFFECT_ORDER, the position of its first parameter in theta and of its first extra state
-#: in x (-1 when absent), then the concept's effect constants (:data:`EFFECT_CONSTANT_NAMES`).
-LAYOUT_SIZE = 2 * len(EFFECT_ORDER)
-EFFECT_CONSTANT_NAMES = ("backlash_relaxation", "backlash_softness", "load_fraction", "mode_omega_max",
-                         "ripple_periods")
+def _layout(order: Sequence[str]) -> dict[str, int]:
+    """Positions inside the layout table: one block per effect of ``order``, at
+    ``positions[effect]`` the position of its first parameter in theta, one further its first
+    extra state in x (-1 when absent), then its kernel constants (``positions[f"{effect}_{short}"]``)."""
+    positions: dict[str, int] = {}
+    k = 0
+    for name in order:
+        positions[name] = k
+        k += 2
+        for short in CATALOGUE[name].constant_names:
+            positions[f"{name}_{short}"] = k
+            k += 1
+    return positions
 
 
-def augment_ema(model: "Model", names: tuple[str, ...], values: dict[str, float], *, model_id: int,
-                extra_states: Mapping[str, tuple[str, ...]], effect_constants: Mapping[str, float]) -> "Model":
-    """The augmented HT/LS or LT/HS model (``Model.augment`` of those concepts, bound by
-    ``functools.partial`` in the concept module to its kernel id, state names and constants).
+#: Kernel layout appended to the augmented model's derived constants (see :func:`_layout`);
+#: effect_kernels.py reads its offsets from here at import, as compile-time constants.
+LAYOUT: dict[str, int] = _layout(EFFECT_ORDER)
+LAYOUT_SIZE = 2 * len(EFFECT_ORDER) + sum(len(CATALOGUE[n].constant_names) for n in EFFECT_ORDER)
+
+
+def augment_ema(model: "Model", names: tuple[str, ...], values: dict[str, float]) -> "Model":
+    """The augmented HT/LS or LT/HS model (``Model.augment`` of those concepts): the kernel id
+    of ``KERNEL_IDS[concept]``, each effect's extra states, error scales and kernel constants
+    as its :class:`Effect` declares them for the concept.
 
     ``names`` are catalogue effects (checked by ``Model.with_effects``); ``values`` override
     effect nominal values (full names). The kernel reads the layout from the derived constants.
     """
-    layout = np.full(LAYOUT_SIZE, -1.0)
+    kernel_id = KERNEL_IDS.get(model.name, (None, None))[1]
+    if kernel_id is None:
+        raise EffectError(f"concept {model.name} has no compiled kernel with effects; give it one in "
+                          "models.base.KERNEL_IDS and effect_kernels.py")
+    table = np.full(LAYOUT_SIZE, -1.0)
     n_params = len(model.parameters)
-    states = list(model.states)
+    states, scales = list(model.states), list(model.state_scales)
     for name in names:
-        k = EFFECT_ORDER.index(name)
-        layout[2 * k] = n_params
-        n_params += len(CATALOGUE[name].parameters)
-        if extra_states.get(name):
-            layout[2 * k + 1] = len(states)
-            states.extend(extra_states[name])
-    tail = np.concatenate([layout, [float(effect_constants[c]) for c in EFFECT_CONSTANT_NAMES]])
-    derive = _DeriveWithLayout(model.derive, tuple(tail))
+        effect = CATALOGUE[name]
+        table[LAYOUT[name]] = n_params
+        n_params += len(effect.parameters)
+        extra = effect.extra_states.get(model.name, ())
+        if extra:
+            table[LAYOUT[name] + 1] = len(states)
+            states.extend(extra)
+            scales.extend(effect.state_scales[s] for s in extra)
+        if effect.constant_names and model.name not in effect.constants:
+            raise EffectError(f"effect {name} gives no kernel constants for concept {model.name}; "
+                              "add them to its Effect.constants")
+        for short, value in effect.constants.get(model.name, {}).items():
+            table[LAYOUT[f"{name}_{short}"]] = float(value)
+    derive = _DeriveWithLayout(model.derive, tuple(table))
     parameters = model.parameters + effect_parameters(names)
     if values:
         given = parameters.vector(values)  # unknown names raise here
         parameters.check_within_bounds(given, what="effect value")
         parameters = parameters.with_nominal(values)
-    postprocess = delay_outputs if "sensor_delay" in names else None
-    return replace(model, model_id=model_id, title=f"{model.title} + {' + '.join(names)}",
-                   states=tuple(states), parameters=parameters, derive=derive, effects=tuple(names),
-                   postprocess=postprocess, built_from=model)
+    steps = tuple(CATALOGUE[n].postprocess for n in names if CATALOGUE[n].postprocess is not None)
+    return replace(model, model_id=kernel_id, title=f"{model.title} + {' + '.join(names)}",
+                   states=tuple(states), state_scales=tuple(scales), parameters=parameters, derive=derive,
+                   effects=tuple(names), postprocess=_OutputSteps(steps) if steps else None, built_from=model)
+
+
+@dataclass(frozen=True)
+class _OutputSteps:
+    """``Model.postprocess`` of an augmented model: the output-side steps of its effects in
+    order (a picklable object rather than a closure)."""
+
+    steps: tuple[Callable, ...]
+
+    def __call__(self, model: "Model", thetas: np.ndarray, time: np.ndarray, out: np.ndarray) -> np.ndarray:
+        for step in self.steps:
+            out = step(model, thetas, time, out)
+        return out
 
 
 @dataclass(frozen=True)
@@ -313,28 +423,5 @@ class _DeriveWithLayout:
         return np.concatenate([self.base(c), np.asarray(self.tail, dtype=np.float64)])
 
 
-def delay_outputs(model: "Model", thetas: np.ndarray, time: np.ndarray, out: np.ndarray) -> np.ndarray:
-    """``sensor_delay``: every channel of set s lags by tau_s (linear interpolation between
-    samples; samples with t < tau hold the first value). thetas (n_sets, n_params), out
-    (n_sets, n_samples, n_outputs), modified in place and returned. tau = 0 leaves a set untouched."""
-    taus = thetas[:, model.parameters.index("sensor_delay_tau")]
-    dt = float(time[1] - time[0])
-    n = out.shape[1]
-    k = np.arange(n)
-    for s, tau in enumerate(taus):
-        if tau == 0.0:
-            continue
-        lag = tau / dt
-        whole = int(math.floor(lag))
-        frac = lag - whole
-        src = k - lag  # fractional sample index of t_k - tau
-        i0 = np.clip(k - whole, 0, n - 1)      # sample at or after t_k - tau
-        i1 = np.clip(k - whole - 1, 0, n - 1)  # sample before it
-        delayed = (1.0 - frac) * out[s, i0] + frac * out[s, i1]
-        delayed[src <= 0.0] = out[s, 0]
-        out[s] = delayed
-    return out
-
-
-__all__ = ["CATALOGUE", "EFFECT_ORDER", "Effect", "EffectError", "SIGNATURES", "augment_ema", "delay_outputs",
-           "effect_parameters", "parse_effect"]
+__all__ = ["CATALOGUE", "EFFECT_ORDER", "Effect", "EffectError", "LAYOUT", "LAYOUT_SIZE", "SIGNATURES", "augment_ema",
+           "delay_outputs", "effect_parameters", "parse_effect"]

@@ -7,7 +7,6 @@ The integer layouts below are the kernel's contract and must match the Parameter
 from __future__ import annotations
 
 import math
-from functools import partial
 
 import numpy as np
 from numba import njit
@@ -86,13 +85,7 @@ MODEL = Model(
     parameters=PARAMETERS, constants=CONSTANTS, derive=derived_constants, integration_step=5e-4,
     integrator="rk4", rtol=5e-8, state_scales=(30.0, 0.3, 0.3, 500.0),  # Omega, y1, y2, theta
     sensor_sets={"full": OUTPUTS, "realistic": ("Omega", "y1", "y2", "I_A")}, loss_referral=loss_factors,
-    effect_catalogue=CATALOGUE, augment=partial(
-        augment_ema, model_id=KERNEL_IDS["htls"][1],  # effect_kernels.evaluate_htls_effects
-        extra_states={"backlash": ("backlash_b1", "backlash_b2"), "shaft_compliance": ("shaft_twist", "shaft_twist_rate")},
-        # play relaxation [s] and clamp softness, load inertia fraction, fastest resolved
-        # torsional mode (1/step) [rad/s], ripple periods per motor revolution
-        effect_constants={"backlash_relaxation": 2e-3, "backlash_softness": 0.05, "load_fraction": 0.5,
-                          "mode_omega_max": 1.0 / 5e-4, "ripple_periods": 6.0}),
+    effect_catalogue=CATALOGUE, augment=augment_ema,  # kernel: effect_kernels.evaluate_htls_effects
 )
 
 

@@ -6,7 +6,6 @@ the first bevel gear; station 1 hangs on it directly, station 2 through a second
 from __future__ import annotations
 
 import math
-from functools import partial
 
 import numpy as np
 from numba import njit
@@ -93,13 +92,7 @@ MODEL = Model(
     parameters=PARAMETERS, constants=CONSTANTS, derive=derived_constants, integration_step=2e-4,
     integrator="rk4", rtol=2e-8, state_scales=(30.0, 900.0, 0.3, 0.3, 1000.0),  # I_A, Omega, y1, y2, theta
     sensor_sets={"full": OUTPUTS, "realistic": ("Omega", "y1", "y2", "I_A", "U_A")}, loss_referral=loss_factors,
-    effect_catalogue=CATALOGUE, augment=partial(
-        augment_ema, model_id=KERNEL_IDS["lths"][1],  # effect_kernels.evaluate_lths_effects
-        extra_states={"backlash": ("backlash_b",), "shaft_compliance": ("shaft_twist", "shaft_twist_rate")},
-        # play relaxation [s] and clamp softness, load inertia fraction, fastest resolved
-        # torsional mode (1/step) [rad/s], ripple periods per motor revolution
-        effect_constants={"backlash_relaxation": 1e-3, "backlash_softness": 0.05, "load_fraction": 0.3,
-                          "mode_omega_max": 1.0 / 2e-4, "ripple_periods": 4.0}),
+    effect_catalogue=CATALOGUE, augment=augment_ema,  # kernel: effect_kernels.evaluate_lths_effects
 )
 
 

@@ -23,6 +23,7 @@ from ema_uq import ParameterError, deploy_retract, get_model, io, simulate_batch
 from ema_uq.models import htls, lths
 from ema_uq.models.effect_kernels import evaluate_htls_effects, evaluate_lths_effects
 from ema_uq.models.effects import CATALOGUE, Effect, EffectError, SIGNATURES, delay_outputs, parse_effect
+from ema_uq.params import Parameter
 
 DEG = math.pi / 180.0
 LEAD = 0.016 * math.tan(4 * DEG)  # m of carriage per screw radian
@@ -70,6 +71,7 @@ def test_catalogue_is_the_model_spec_table():
             assert p.lower <= effect.off[p.name] <= p.upper and p.lower <= effect.start[p.name] <= p.upper
         # the start sits near off but not on it
         magnitude = MAGNITUDE[name]
+        assert effect.magnitude == magnitude
         assert effect.off[magnitude] == 0.0 < effect.start[magnitude] < effect.nominal[magnitude]
         assert effect.signature and set(effect.signature) <= set(SIGNATURES)
     for concept in ("htls", "lths"):
@@ -101,6 +103,49 @@ def test_with_effects_layout(concept, extra_states):
     # --set reaches effect parameters
     params, consts = aug.split_assignments({"backlash_delta": 0.01, "r": 0.02})
     assert params == {"backlash_delta": 0.01} and consts == {"r": 0.02}
+
+
+def test_kernel_layout_and_error_scales_come_from_the_effect_definitions():
+    """Offsets of the kernel layout table follow EFFECT_ORDER and each effect's constants; an
+    augmented model's states, error scales and constants are those its effects declare."""
+    from ema_uq.models import effect_kernels
+    from ema_uq.models.effects import EFFECT_ORDER, LAYOUT, LAYOUT_SIZE
+    from ema_uq.simulate import error_scales
+
+    position = 0
+    for name in EFFECT_ORDER:
+        assert LAYOUT[name] == position
+        position += 2
+        for short in CATALOGUE[name].constant_names:
+            assert LAYOUT[f"{name}_{short}"] == position
+            position += 1
+    assert LAYOUT_SIZE == position
+    assert (effect_kernels.FX_COMPLIANCE, effect_kernels.FX_RIPPLE_PERIODS) == (
+        LAYOUT["shaft_compliance"], LAYOUT["torque_ripple_periods"])
+    base = get_model("lths")
+    aug = base.with_effects(["shaft_compliance", "backlash"])
+    assert aug.states[base.n_states:] == ("shaft_twist", "shaft_twist_rate", "backlash_b")
+    assert aug.state_scales == base.state_scales + (0.01, 1.0, 0.1)
+    table = aug.kernel_constants()[-LAYOUT_SIZE:]
+    assert table[LAYOUT["shaft_compliance_load_fraction"]] == 0.3 and table[LAYOUT["backlash_relaxation"]] == 1e-3
+    assert table[LAYOUT["backlash"] + 1] == base.n_states + 2 and table[LAYOUT["stribeck"]] == -1.0
+    thetas = np.repeat(aug.parameters.nominal[None], 2, axis=0)
+    thetas[1, aug.parameters.index("backlash_delta")] = 0.0      # the play's state feeds nothing: frozen
+    scales = error_scales(aug, thetas)
+    np.testing.assert_array_equal(scales[0], aug.state_scales)
+    np.testing.assert_array_equal(scales[1], aug.state_scales[:-1] + (-1.0,))
+
+
+@pytest.mark.parametrize("facts, fragment", [
+    ({"extra_states": {"htls": ("toy_x",)}}, "extra state toy_x of concept htls has no positive error scale"),
+    ({"magnitude": "toy_phase"}, "magnitude 'toy_phase' must be a parameter that is 0 at off"),
+    ({"constants": {"htls": {"a": 1.0}, "lths": {"b": 1.0}}}, "concept lths gives kernel constants b; every concept"),
+])
+def test_inconsistent_kernel_facts_of_an_effect_are_one_line_errors(facts, fragment):
+    parameter = Parameter("toy_phase", "rad", 0.5, -1.0, 1.0)
+    with pytest.raises(EffectError, match=fragment):
+        Effect("toy", "a toy", (parameter,), start={"toy_phase": 0.1}, off={"toy_phase": 0.5},
+               signature=("periodic",), **facts)
 
 
 @pytest.mark.parametrize("names, values, fragments", [
@@ -217,7 +262,7 @@ def test_each_effect_is_visible_through_2_percent_noise(concept, experiment, nom
     for name in CATALOGUE:
         aug = base.with_effects([name])
         thetas = np.tile(aug.parameters.nominal, (2, 1))
-        thetas[1, aug.parameters.index(MAGNITUDE[name])] *= 0.5
+        thetas[1, aug.parameters.index(CATALOGUE[name].magnitude)] *= 0.5
         out = runs(aug, thetas, experiment)[:, :, idx]
         nrmse = np.sqrt(np.mean((out - nominal) ** 2, axis=1)) / rms
         excess = experiment.n_samples * np.sum((nrmse / NOISE) ** 2, axis=1)
