@@ -58,7 +58,9 @@ Procedure (``diagnose``):
    ``effect`` when the best candidate has ΔBIC > ``BIC_MIN``, G > ``HELD_OUT_GAIN_MIN`` and,
    if the nominal model's gap on the selection part is significant (see below), a selection
    shrink ≥ ``SHRINK_MIN`` (an insignificant gap is noise, and its shrink no evidence). Its
-   confidence is ``high`` when its score is at least ``MARGIN`` times the runner-up's, the
+   confidence is ``high`` when its score is at least ``MARGIN`` times the runner-up's (the best
+   candidate of another family: ``Effect.family`` groups alternative forms of one physics, and
+   the diagnosis names the family, ``GapResult.family``, beside the form, ``effect``), the
    selection shrink is ≥ ``SHRINK_CONFIDENT`` (or the gap insignificant) and the augmented model's
    residual passes every residual test of the localisation, on estimation and held-out
    data; else ``low``.
@@ -579,7 +581,7 @@ def _score(run: _Diagnosis, reference: _Reference, name: str, effect, refit, sec
         chosen[1]["log_det_r"], chosen[1]["nrmse"], chosen[1]["z"], bool(fit.converged), fit.iterations,
         fit.n_simulations, seconds, fit.message, fit.as_dict(), stage, list(fit.free_names),
         shrink_se=run.shrink_se(*scored), selection_gap_before=chosen[0]["gap"], selection_gap_after=chosen[1]["gap"],
-        selection_shrink=float(selection_shrink))
+        selection_shrink=float(selection_shrink), family=_family(name, effect))
     return row, after
 
 
@@ -594,12 +596,18 @@ def _candidate(run: _Diagnosis, reference: _Reference, name: str, effect, loc, f
         run.say(f"  {name}: refit failed ({exc})")
         return CandidateScore(name, float("-inf"), reference.figures["scoring"]["gap"], float("nan"), float("nan"),
                               float("nan"), float("nan"), float("nan"), 0.0, 0,
-                              message=f"refit failed: {exc}", wall_time_s=time.perf_counter() - tc)
+                              message=f"refit failed: {exc}", wall_time_s=time.perf_counter() - tc,
+                              family=_family(name, effect))
     stage = "screening" if kwargs.get("screening", True) else "final"
     row, after = _score(run, reference, name, effect, refit, time.perf_counter() - tc, stage, loc)
     run.n_sims += refit[2].n_simulations + len(run.data.held)
     fits[name] = (refit, after)
     return row
+
+
+def _family(name: str, effect) -> str:
+    """The family an effect belongs to (``Effect.family``; itself when its catalogue has none)."""
+    return getattr(effect, "family", None) or name
 
 
 def _ranked(rows: list[CandidateScore]) -> list[CandidateScore]:
@@ -640,7 +648,9 @@ def _forward_selection(run: _Diagnosis, nominal: _Reference, loc):
     of the last selected effect, or of round 1's best candidate, and its score) or None)."""
     reference, selected, rounds, round_fits = nominal, [], [], []
     for _ in range(run.settings.max_effects):
-        pool = {k: v for k, v in run.catalogue.items() if k not in selected}
+        # a selected effect's family is done: its other forms are alternatives, not additions
+        done = {_family(k, run.catalogue[k]) for k in selected}
+        pool = {k: v for k, v in run.catalogue.items() if _family(k, v) not in done}
         if not pool:
             break
         ranking, fits = _candidate_round(run, reference, pool, loc)
@@ -673,9 +683,12 @@ def _after_model(run: _Diagnosis, rounds, selected, round_fits):
 
 def _verdict(th: Thresholds, ranking: list[CandidateScore], significant: bool, structured: bool,
              loc_after, loc_after_held) -> tuple[str, str | None, str]:
-    """Step 6: (verdict, effect, confidence) from round 1 (module docstring)."""
+    """Step 6: (verdict, effect, confidence) from round 1 (module docstring). The runner-up of
+    the margin test is the best candidate of another family: forms of one family that explain
+    the gap alike are no ambiguity about what is missing."""
     best = ranking[0] if ranking and np.isfinite(ranking[0].score) else None
-    runner_up = ranking[1].score if len(ranking) > 1 and np.isfinite(ranking[1].score) else 0.0
+    rivals = [c.score for c in ranking[1:] if best is not None and c.family != best.family and np.isfinite(c.score)]
+    runner_up = rivals[0] if rivals else 0.0
     if _passes(th, best, significant):
         confident = (best.score >= th.margin * max(runner_up, 0.0)
                      and (best.selection_shrink >= th.shrink_confident or not significant)
@@ -783,7 +796,8 @@ def diagnose(
                     "estimate": fit.as_dict(), "std": {nm: float(s) for nm, s in zip(fit.names, fit.std)}}
     d = run.data
     return GapResult(
-        concept=concept, verdict=verdict, effect=effect, confidence=confidence, ranking=ranking,
+        concept=concept, verdict=verdict, effect=effect,
+        family=None if effect is None else _family(effect, catalogue[effect]), confidence=confidence, ranking=ranking,
         where={"channels": loc.where_channels(), "regimes": loc.where_regimes},
         gap={**_gap_summary(run, before, after_figures, verdict), "effect_of_after": chosen.effect if chosen else None},
         localization=loc_est, localization_held_out=loc_held, localization_after=loc_after,

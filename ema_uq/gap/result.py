@@ -23,7 +23,8 @@ class CandidateScore:
     held-out part that did not select the winner, ``shrink_se`` is its block-bootstrap standard
     error; ``selection_gap_*``, ``selection_shrink``, ``held_out_gain``, ``held_out_log_det_r``,
     ``nrmse_after`` (plain NRMSE, channel mean) and ``gap_z_after`` are on the selection part,
-    the one the verdict reads.
+    the one the verdict reads. ``family`` is the effect's family (``Effect.family``; the
+    effect itself when its catalogue has none).
     """
 
     effect: str
@@ -53,6 +54,11 @@ class CandidateScore:
     selection_gap_before: float = float("nan")
     selection_gap_after: float = float("nan")
     selection_shrink: float = float("nan")
+    family: str = ""
+
+    def __post_init__(self) -> None:
+        if not self.family:  # a catalogue without families: every effect is its own
+            self.family = self.effect
 
     def to_json(self) -> dict[str, Any]:
         out = {k: _finite(v) for k, v in vars(self).items()}
@@ -80,7 +86,8 @@ class GapResult:
     """Outcome of a sim-to-real gap diagnosis (GAP.json of INTERFACES.md plus details).
 
     ``verdict`` is ``"effect"``, ``"none"`` or ``"unexplained"``; ``effect`` the winning
-    catalogue name (None unless the verdict is ``effect``); ``ranking`` every candidate,
+    catalogue name, the form (None unless the verdict is ``effect``); ``family`` its family
+    (``Effect.family``: what the diagnosis names; None unless the verdict is ``effect``); ``ranking`` every candidate,
     best score first; ``where`` the channels and regimes holding the nominal model's gap;
     ``localization``/``localization_held_out`` the nominal model's residual localisation on the
     estimation and the held-out data, ``localization_after``/``localization_after_held_out``
@@ -115,6 +122,12 @@ class GapResult:
     provenance: dict[str, Any] = field(default_factory=dict)
     selected: list[str] = field(default_factory=list)
     further_rounds: list[list[CandidateScore]] = field(default_factory=list)
+    family: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.family is None and self.effect is not None:
+            row = next((c for c in self.ranking if c.effect == self.effect), None)
+            self.family = row.family if row is not None else self.effect
 
     @property
     def best(self) -> CandidateScore | None:
@@ -136,7 +149,8 @@ class GapResult:
         return next((c for c in rounds[r] if c.effect == name), None) if r < len(rounds) else None
 
     def summary(self) -> str:
-        head = {"effect": f"effect {self.effect} ({self.confidence} confidence)",
+        named = self.family if self.family == self.effect else f"{self.family} ({self.effect})"
+        head = {"effect": f"effect {named} ({self.confidence} confidence)",
                 "none": "no significant gap: the noise explains the residual",
                 "unexplained": "a significant gap that no candidate effect closes"}[self.verdict]
         lines = [f"[[Gap diagnosis: {self.concept}]] verdict: {head}",
@@ -148,10 +162,10 @@ class GapResult:
                  *self._shrink_line(),
                  f"    wall time          = {self.wall_time_s:.1f} s, {self.n_simulations} simulations",
                  "[[Ranking]] (gaps and shrink on the scoring part, the held-out gain on the selection part)",
-                 f"    {'effect':<24} {'score':>10} {'dBIC':>10} {'held-out':>10} {'sig':>5} "
+                 f"    {'effect':<24} {'family':<18} {'score':>10} {'dBIC':>10} {'held-out':>10} {'sig':>5} "
                  f"{'gap before':>10} {'after':>9} {'shrink':>7} {'+/-':>5}"]
         for c in self.ranking:
-            lines.append(f"    {c.effect:<24} {c.score:>10.1f} {c.delta_bic:>10.1f} {c.held_out_gain:>10.1f} "
+            lines.append(f"    {c.effect:<24} {c.family:<18} {c.score:>10.1f} {c.delta_bic:>10.1f} {c.held_out_gain:>10.1f} "
                          f"{c.signature_match:>5.2f} {c.gap_before:>10.4g} {c.gap_after:>9.4g} {c.shrink:>7.2f} "
                          f"{c.shrink_se:>5.2f}"
                          + ("" if not c.message or c.converged else f"  ({c.message[:60]})"))
@@ -180,6 +194,7 @@ class GapResult:
         return _finite({
             "verdict": self.verdict,
             "effect": self.effect,
+            "family": self.family,
             "confidence": self.confidence,
             "ranking": [c.to_json() for c in self.ranking],
             "where": {"channels": list(self.where["channels"]), "regimes": list(self.where["regimes"])},
@@ -228,6 +243,7 @@ class GapResult:
             seed=data.get("seed"), provenance=dict(data.get("provenance", {})),
             selected=list(data.get("selected", [])),
             further_rounds=[[_candidate_from_json(c) for c in rnd] for rnd in data.get("further_rounds", [])],
+            family=data.get("family"),
         )
 
 

@@ -112,7 +112,9 @@ class Effect:
     ``constants`` (concept -> fixed kernel constants, short name -> value, the same names for
     every concept; :data:`LAYOUT` gives their kernel positions) and ``postprocess`` (an
     output-side step ``f(model, thetas, time, out) -> out`` run by ``simulate_batch`` after
-    the kernel).
+    the kernel). ``family`` (default: the effect's own name) groups alternative forms of one
+    piece of physics (e.g. play in a rigid or in a compliant drive train): the gap diagnosis
+    names the family and reports the form.
     """
 
     name: str
@@ -126,8 +128,11 @@ class Effect:
     magnitude: str | None = None
     constants: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
     postprocess: Callable | None = None
+    family: str = ""
 
     def __post_init__(self) -> None:
+        if not self.family:  # a form of its own: the family is the effect itself
+            object.__setattr__(self, "family", self.name)
         names = [p.name for p in self.parameters]
         for p in self.parameters:
             if not p.name.startswith(self.name + "_"):

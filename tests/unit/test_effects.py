@@ -527,3 +527,46 @@ def test_simulate_bad_effect_is_a_one_line_error(tmp_path, capsys, effect, fragm
     for fragment in fragments:
         assert fragment in lines[0], lines[0]
     assert not out.exists()
+
+
+# --- families: the diagnosis names the family, forms of one family are no ambiguity ----------
+def _row(effect, family, score):
+    from ema_uq.gap.result import CandidateScore
+
+    return CandidateScore(effect, score, 1.0, 0.05, 0.95, score, score, score, 0.5, 1,
+                          selection_shrink=0.95, family=family)
+
+
+def test_family_defaults_to_the_effect_and_forms_of_one_family_do_not_cut_the_margin():
+    from ema_uq.gap.attribute import _verdict
+    from ema_uq.gap.result import CandidateScore
+    from ema_uq.gap.strategy import Thresholds
+
+    assert all(e.family for e in CATALOGUE.values())
+    assert CATALOGUE["stribeck"].family == "stribeck"
+    assert CandidateScore("sensor_delay", 1.0, 1, 1, 0, 1, 1, 1, 0, 1).family == "sensor_delay"
+
+    class Clean:
+        structured = False
+
+    th = Thresholds()
+    close_forms = [_row("form_a", "play", 1000.0), _row("form_b", "play", 990.0), _row("other", "other", 100.0)]
+    assert _verdict(th, close_forms, True, True, Clean(), Clean()) == ("effect", "form_a", "high")
+    close_families = [_row("form_a", "play", 1000.0), _row("other", "other", 990.0), _row("form_b", "play", 900.0)]
+    assert _verdict(th, close_families, True, True, Clean(), Clean())[2] == "low"
+
+
+def test_gap_json_carries_the_family_beside_the_form():
+    from ema_uq.gap.result import GapResult
+
+    ranking = [_row("form_a", "play", 1000.0), _row("other", "other", 10.0)]
+    common = dict(concept="htls", confidence="high", ranking=ranking, where={"channels": [], "regimes": []},
+                  gap={}, localization=None, localization_held_out=None, localization_after=None,
+                  localization_after_held_out=None, where_source="estimation", held_out="", channels=[],
+                  held_out_channels=[], nominal={}, effect_parameters={}, thresholds={}, wall_time_s=0.0,
+                  n_simulations=0)
+    r = GapResult(verdict="effect", effect="form_a", **common)
+    assert r.family == "play"       # from the winner's ranking row when not given
+    rows = [c.to_json() for c in r.ranking]
+    assert [row["family"] for row in rows] == ["play", "other"]
+    assert GapResult(verdict="none", effect=None, **common).family is None
