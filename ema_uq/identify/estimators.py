@@ -17,6 +17,8 @@ from .result import FitResult
 
 FD_RELATIVE_STEP = 1e-5
 SINGULAR_RCOND = 1e-12
+#: answers to a singular information matrix at the start (see :func:`estimate`)
+UNIDENTIFIABLE_MODES = ("error", "fix")
 
 
 @dataclass(frozen=True)
@@ -32,6 +34,14 @@ class Settings:
     #: Cramér-Rao bounds at the estimate (central differences, 2 x free simulations); off for
     #: inner fits whose bounds nobody reads (profile likelihoods), where they cost ~40 %
     cramer_rao: bool = True
+
+
+class SingularInformationError(IdentificationError):
+    """The data cannot determine every free parameter at the start (singular information
+    matrix); ``estimate(..., unidentifiable="fix")`` holds the undetermined ones instead.
+    ``n_simulations``: simulations spent before the test failed."""
+
+    n_simulations: int = 0
 
 
 class _State:
@@ -99,7 +109,7 @@ def _check_information(problem: FitProblem, info: np.ndarray, sens: np.ndarray) 
     names = problem.parameters.free_names
     dead = [names[j] for j in range(len(names)) if not np.any(sens[:, :, j])]
     if dead:
-        raise IdentificationError(
+        raise SingularInformationError(
             f"singular information matrix: {', '.join(dead)} has no effect on the channels "
             f"{', '.join(problem.channels)}; fix it (free=False) or add a channel that depends on it"
         )
@@ -107,7 +117,7 @@ def _check_information(problem: FitProblem, info: np.ndarray, sens: np.ndarray) 
     if evals[0] <= SINGULAR_RCOND * evals[-1]:
         v = evecs[:, 0]
         members = [f"{v[j]:+.2f}*{names[j]}" for j in np.argsort(-np.abs(v)) if abs(v[j]) > 0.2]
-        raise IdentificationError(
+        raise SingularInformationError(
             f"singular information matrix (condition {evals[-1] / max(evals[0], 1e-300):.1e}): the data cannot "
             f"separate the direction {' '.join(members)}; fix one of these parameters or add channels"
         )
@@ -213,15 +223,28 @@ def estimate(
     start: np.ndarray | None = None,
     settings: Settings = Settings(),
     seed: int | None = None,
+    unidentifiable: str = "error",
 ) -> FitResult:
     """Maximum-likelihood estimate of the free parameters of ``problem``.
 
     ``start`` is a full parameter vector (default: the set's nominal values) and must lie
     within bounds. Returns a :class:`FitResult` with Cramér-Rao standard deviations
     computed from the information matrix at the estimate.
+
+    ``unidentifiable``: what to do when the data cannot determine every free parameter at
+    the start (singular information matrix): ``"error"`` raises :class:`SingularInformationError`
+    naming the direction; ``"fix"`` holds the undetermined parameters at their start values,
+    estimates the rest and reports the identifiable combinations (:mod:`.reduction`).
     """
     if method not in ("gn", "lm"):
         raise IdentificationError(f"unknown method {method!r}; choose gn (Gauss-Newton) or lm (Levenberg-Marquardt)")
+    if unidentifiable not in UNIDENTIFIABLE_MODES:
+        raise IdentificationError(f"unknown unidentifiable mode {unidentifiable!r}; choose "
+                                  f"{' or '.join(UNIDENTIFIABLE_MODES)}")
+    if unidentifiable == "fix":
+        from .reduction import estimate_holding_unidentifiable
+
+        return estimate_holding_unidentifiable(problem, method=method, start=start, settings=settings, seed=seed)
     params = problem.parameters
     start = params.nominal if start is None else np.asarray(start, dtype=float)
     params.check_within_bounds(start, what="start value")
@@ -242,7 +265,11 @@ def estimate(
     for iteration in range(1, settings.max_iterations + 1):
         info, grad, sens = _information(problem, state, scale, counter, central=False)
         if iteration == 1:
-            _check_information(problem, info, sens)
+            try:
+                _check_information(problem, info, sens)
+            except SingularInformationError as exc:
+                exc.n_simulations = counter.n
+                raise
         new, extra = stepper(problem, state, info, grad, scale, settings, counter)
         if new is None:
             # exhausted step control is convergence only when the model promised no real decrease

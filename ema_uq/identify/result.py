@@ -17,7 +17,13 @@ class FitResult:
     ``estimate`` holds the full parameter vector (fixed ones at their given value);
     ``covariance`` is the inverse information matrix over the free parameters (Cramér-Rao
     bound), ``std`` its square-root diagonal expanded to the full layout (0 for fixed ones,
-    NaN where the information matrix gives no bound).
+    NaN where the information matrix gives no bound and for parameters held because the data
+    cannot determine them).
+
+    ``unidentifiable`` is the answer chosen to a singular information matrix at the start
+    (``"error"`` or ``"fix"``, :mod:`ema_uq.identify.reduction`); ``fixed`` names the
+    parameters it held, {name: {"value", "reason"}}, and ``combinations`` the identifiable
+    combination of every lumped group (expression, coefficients, value, std, ci95).
     """
 
     concept: str
@@ -44,6 +50,9 @@ class FitResult:
     warnings: list[str] = field(default_factory=list)
     seed: int | None = None
     provenance: dict[str, Any] = field(default_factory=dict)
+    unidentifiable: str = "error"
+    fixed: dict[str, dict[str, Any]] = field(default_factory=dict)
+    combinations: list[dict[str, Any]] = field(default_factory=list)
 
     @property
     def free_names(self) -> tuple[str, ...]:
@@ -84,15 +93,19 @@ class FitResult:
             f"    wall time          = {self.wall_time_s:.2f} s",
             f"    samples, channels  = {self.n_samples}, {len(self.channels)}",
             f"    log det R          = {self.log_det_r:.6g}",
+            f"    unidentifiable     = {self.unidentifiable}"
+            + (f" ({len(self.fixed)} held: {', '.join(self.fixed)})" if self.fixed else ""),
             "[[Parameters]] (std = Cramér-Rao bound)",
         ]
         for i, name in enumerate(self.names):
-            tag = "" if self.free[i] else " (fixed)"
+            tag = " (held: unidentifiable)" if name in self.fixed else ("" if self.free[i] else " (fixed)")
             if name in self.at_bounds:
                 tag += " (at bound)"
             rel = abs(self.std[i] / self.estimate[i]) * 100 if self.estimate[i] else np.nan
-            lines.append(f"    {name:<8} = {self.estimate[i]:>12.6g} +/- {self.std[i]:<10.3g} "
-                         f"({rel:5.2f}%) {self.units[i]}{tag}  (init = {self.start[i]:.6g})")
+            bound = f"+/- {self.std[i]:<10.3g} ({rel:5.2f}%)" if name not in self.fixed else f"{'(no bound)':<23}"
+            lines.append(f"    {name:<8} = {self.estimate[i]:>12.6g} {bound} {self.units[i]}{tag}  "
+                         f"(init = {self.start[i]:.6g})")
+        lines += self._reduction_lines()
         pairs = self.high_correlations()
         if pairs:
             lines.append(f"[[Correlations]] (|rho| > {HIGH_CORRELATION})")
@@ -100,6 +113,20 @@ class FitResult:
         for w in self.warnings:
             lines.append(f"    warning: {w}")
         return "\n".join(lines)
+
+    def _reduction_lines(self) -> list[str]:
+        if not self.fixed and not self.combinations:
+            return []
+        from .reduction import HOLD_RULE
+
+        lines = [f"[[Held parameters]] (rule: {HOLD_RULE})"]
+        lines += [f"    {n:<8} = {row['value']:>12.6g}  {row['reason']}" for n, row in self.fixed.items()]
+        lines.append("[[Identifiable combinations]] (std = Cramér-Rao bound)")
+        for c in self.combinations:
+            lo, hi = c["ci95"]
+            lines.append(f"    {c['expression']} = {c['value']:.6g} +/- {c['std']:.3g} "
+                         f"({100 * c['relative_std']:.2f}%; 95 % [{lo:.6g}, {hi:.6g}])")
+        return lines
 
     def to_json(self) -> dict[str, Any]:
         corr = self.correlation
@@ -130,9 +157,17 @@ class FitResult:
             "at_bounds": list(self.at_bounds),
             "residual_covariance": self.residual_covariance.tolist(),
             "warnings": list(self.warnings),
+            "unidentifiable": {"mode": self.unidentifiable, "rule": self._hold_rule()},
+            "fixed": self.fixed,
+            "combinations": self.combinations,
             "history": self.history,
             "provenance": self.provenance,
         }
+
+    def _hold_rule(self) -> str | None:
+        from .reduction import HOLD_RULE
+
+        return HOLD_RULE if self.unidentifiable == "fix" else None
 
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> "FitResult":
@@ -155,4 +190,6 @@ class FitResult:
             history=list(data.get("history", [])), at_bounds=list(data.get("at_bounds", [])),
             warnings=list(data.get("warnings", [])), seed=data.get("seed"),
             provenance=dict(data.get("provenance", {})),
+            unidentifiable=(data.get("unidentifiable") or {}).get("mode", "error"),
+            fixed=dict(data.get("fixed", {})), combinations=list(data.get("combinations", [])),
         )
