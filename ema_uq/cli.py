@@ -20,6 +20,9 @@ from typing import Callable, Sequence
 from . import __version__
 
 PROG = "ema-uq"
+#: answers of ``identify --unidentifiable`` (ema_uq.identify.UNIDENTIFIABLE_MODES; not imported
+#: here, the parser builds without loading the numerics)
+UNIDENTIFIABLE_MODES = ("fix", "error")
 EXIT_OK = 0
 EXIT_ERROR = 2
 
@@ -261,6 +264,10 @@ def _add_identify(subparsers) -> None:
     _add_set(p)
     p.add_argument("--fix", nargs="+", default=[], metavar="NAME", help="hold these parameters at their value")
     p.add_argument("--channels", nargs="+", metavar="NAME", help="fit only these channels (default: all common)")
+    p.add_argument("--unidentifiable", choices=UNIDENTIFIABLE_MODES, default="fix",
+                   help="when the channels cannot determine every free parameter (singular information matrix at "
+                        "the start): fix holds the undetermined ones at their start values, estimates the rest and "
+                        "reports the identifiable combinations; error stops naming the direction (default fix)")
     p.add_argument("--validate", nargs="+", default=[], metavar="DATA",
                    help="data NOT used for estimation: report per-channel fit and residual tests")
     p.add_argument("--max-iterations", type=int, default=50, metavar="N")
@@ -286,7 +293,7 @@ def _run_identify(args: argparse.Namespace) -> str:
     if args.perturb > 0:
         start = perturbed_start(parameters, args.perturb, args.seed, around=start)
     fit = estimate(problem, method=args.method, start=start, seed=args.seed,
-                   settings=Settings(max_iterations=args.max_iterations))
+                   settings=Settings(max_iterations=args.max_iterations), unidentifiable=args.unidentifiable)
     fit.provenance = provenance(args.data + args.validate, seed=args.seed,
                                 settings={k: v for k, v in vars(args).items() if k != "handler"})
     out = fit.to_json()
@@ -301,6 +308,9 @@ def _run_identify(args: argparse.Namespace) -> str:
                        [("estimation", m) for m in measurements] + [("validation", m) for m in validation_data])
     worst = min((c["fit_percent"] for v in out["validation"] for c in v["channels"].values()), default=None)
     tail = f", validation worst-channel fit {worst:.1f} %" if worst is not None else ""
+    if fit.fixed:
+        tail += (f"; held {len(fit.fixed)} parameters the channels cannot determine ({', '.join(fit.fixed)}), "
+                 + "; ".join(f"{c['expression']} = {c['value']:.4g} +/- {c['std']:.2g}" for c in fit.combinations))
     return (f"wrote {args.out}: {model.name} {args.method.upper()} "
             f"{'converged' if fit.converged else 'NOT converged'} in {fit.iterations} iterations, "
             f"{fit.n_simulations} simulations, {fit.wall_time_s:.1f} s{tail}")
@@ -507,15 +517,29 @@ def _run_sensitivity(args: argparse.Namespace) -> str:
 def _add_identifiability(subparsers) -> None:
     p = subparsers.add_parser(
         "identifiability", help="which parameters each sensor set can determine (FIM, collinearity, profiles)",
-        description="From an ML fit: Fisher information (rank, condition, named null directions), correlations, "
-                    "Brun collinearity indices and profile likelihoods of the friction/damping parameters, with a "
-                    "verdict per parameter and the identifiable combination of every lumped group, for each "
-                    "sensor set (default: full instrumentation and the realistic rig set).")
-    _add_data(p)
+        description="From an ML fit (--init): Fisher information (rank, condition, named null directions), "
+                    "correlations, Brun collinearity indices and profile likelihoods of the friction/damping "
+                    "parameters, with a verdict per parameter and the identifiable combination of every lumped "
+                    "group, for each sensor set (default: full instrumentation and the realistic rig set). "
+                    "Before any fit (--at): the expected information at a point, on the noise-free outputs there "
+                    "of the DATA's experiments (or --experiment) with --noise x each channel's RMS as the noise; "
+                    "profiles are skipped (they need measured data's likelihood minimum), verdicts come from the "
+                    "information matrix.")
+    p.add_argument("data", nargs="*", metavar="DATA",
+                   help="measurement files (.nc or .csv); with --at only their experiments (inputs) are used")
     _add_concept(p)
-    p.add_argument("--init", required=True, metavar="FIT.json", help="ML fit of the same concept (ema-uq identify)")
+    where = p.add_mutually_exclusive_group(required=True)
+    where.add_argument("--init", metavar="FIT.json", help="ML fit of the same concept (ema-uq identify)")
+    where.add_argument("--at", metavar="nominal|PARAMS.json",
+                       help="assess at this point without a fit: the nominal set (with --set / data.set), a FIT.json "
+                            "or a JSON object {parameter: value} over the nominal set")
+    p.add_argument("--experiment", nargs="+", default=None, metavar="NAME",
+                   help="with --at and no DATA: the input profile(s) to assess (e.g. deploy-retract)")
+    p.add_argument("--noise", type=_fraction, default=0.02, metavar="FRACTION",
+                   help="with --at: sensor noise as a fraction of each channel's RMS (default: the study's data.noise, "
+                        "else 0.02)")
     p.add_argument("--out", required=True, metavar="IDENT.json")
-    _add_study(p, "sensor sets, profile settings and data.set (its design constants)")
+    _add_study(p, "sensor sets, profile settings, noise level and data.set (its design constants)")
     _add_set(p)
     p.add_argument("--sensor-sets", nargs="+", default=None, choices=("full", "realistic"), metavar="SET",
                    help="built-in sensor sets to assess: full, realistic (default: the study's, else both)")
@@ -551,20 +575,27 @@ def _run_identifiability(args: argparse.Namespace) -> str:
         sets = [{"name": "custom", "channels": _names(args.channels)}]
     else:
         sets = args.sensor_sets or ["full", "realistic"]
-    _, constants = _model_vectors(model, args.set)  # the fit holds the parameters; the data's constants
+    theta, constants = _model_vectors(model, args.set)  # a fit holds the parameters; the data's constants
     io.prepare_output(args.out)
-    fit = _read_fit(args.init, args.concept)
-    measurements = _read_all(args.data, args.concept)
+    if args.at is not None:
+        result = _identifiability_at(args, model, sets, settings, theta, constants)
+    else:
+        if not args.data:
+            raise CLIError("give the data the fit was made on (DATA), or --at to assess a point without a fit")
+        fit = _read_fit(args.init, args.concept)
+        measurements = _read_all(args.data, args.concept)
 
-    def progress(line: str) -> None:
-        print(f"{PROG} identifiability: {line}", file=sys.stderr, flush=True)
+        def progress(line: str) -> None:
+            print(f"{PROG} identifiability: {line}", file=sys.stderr, flush=True)
 
-    result = ident.sensor_set_study(measurements, fit.estimate, fit.free_names, sets, settings=settings,
-                                    profile_names=_names(args.profile),
-                                    constants=constants, progress=None if args.quiet else progress)
+        # parameters the fit held because its channels cannot determine them are assessed as well
+        free = [n for n in model.parameters.names if n in fit.free_names or n in fit.fixed]
+        result = ident.sensor_set_study(measurements, fit.estimate, free, sets, settings=settings,
+                                        profile_names=_names(args.profile),
+                                        constants=constants, progress=None if args.quiet else progress)
     result.data = list(args.data)
-    result.provenance = provenance([*args.data, args.init], settings={k: v for k, v in vars(args).items()
-                                                                       if k != "handler"})
+    inputs = [*args.data] + ([args.init] if args.init else [] if args.at == "nominal" else [args.at])
+    result.provenance = provenance(inputs, settings={k: v for k, v in vars(args).items() if k != "handler"})
     io.write_json(args.out, result.to_json())
     parts = []
     for name, r in result.sets.items():
@@ -572,6 +603,52 @@ def _run_identifiability(args: argparse.Namespace) -> str:
         parts.append(f"{name}: rank {r.info.rank}/{len(r.names)}, {counts[0]} identifiable, "
                      f"{counts[1]} practically and {counts[2]} structurally non-identifiable")
     return f"wrote {args.out}: {model.name} " + "; ".join(parts)
+
+
+def _read_point(text: str, model, theta):
+    """The full parameter vector of ``--at``: ``nominal`` (``theta``, i.e. with --set), a FIT.json's
+    estimate, or a JSON object {parameter: value} laid over ``theta``; checked against the bounds."""
+    import numpy as np
+
+    from . import io
+
+    if text == "nominal":
+        return theta
+    data = io.read_json(text)
+    if isinstance(data, dict) and "parameters" in data and "concept" in data:
+        return _read_fit(text, model.name).estimate
+    if not isinstance(data, dict) or not all(isinstance(v, (int, float)) for v in data.values()):
+        raise CLIError(f"{text} is neither a FIT.json nor a JSON object of parameter values "
+                       '(e.g. {"B_TS1": 0.4}); give one of these or --at nominal')
+    unknown = [n for n in data if n not in model.parameters]
+    if unknown:
+        raise CLIError(f"{text}: unknown parameter {unknown[0]!r} for {model.name}; parameters: "
+                       f"{', '.join(model.parameters.names)}")
+    point = np.array(theta, dtype=float)
+    for name, value in data.items():
+        point[model.parameters.index(name)] = float(value)
+    model.parameters.check_within_bounds(point, what=f"value in {text}")
+    return point
+
+
+def _identifiability_at(args, model, sets, settings, theta, constants):
+    """The sensor-set study at ``--at`` without a fit (expected information, no profiles)."""
+    from . import identifiability as ident
+    from .experiments import get_experiment
+
+    if args.data and args.experiment:
+        raise CLIError("give either DATA (its experiments are used) or --experiment with --at, not both")
+    if args.data:
+        experiments = [m.experiment for m in _read_all(args.data, args.concept)]
+    elif args.experiment:
+        experiments = [get_experiment(name) for name in _names(args.experiment)]
+    else:
+        raise CLIError("--at needs the experiment to assess: give DATA files or --experiment (e.g. deploy-retract)")
+    point = _read_point(args.at, model, theta)
+    result = ident.sensor_set_study_at(model, experiments, point, model.parameters.free_names, sets,
+                                       noise=args.noise, settings=settings, constants=constants)
+    result.at = args.at
+    return result
 
 
 def _add_gap(subparsers) -> None:

@@ -243,9 +243,12 @@ def information_from_sensitivities(weighted: np.ndarray, names: Sequence[str], s
     return Information(tuple(names), scale, full, data, rtol)
 
 
-def information(problem: FitProblem, theta: np.ndarray, *, rtol: float = RANK_RTOL) -> tuple[Information, int]:
+def information(problem: FitProblem, theta: np.ndarray, *, rtol: float = RANK_RTOL,
+                noise_covariance: np.ndarray | None = None) -> tuple[Information, int]:
     """Fisher information of ``problem``'s free parameters at the full vector ``theta``
-    (R estimated from the residuals there); returns it and the number of simulated sets."""
+    (R estimated from the residuals there, or ``noise_covariance`` (n_channels, n_channels)
+    when given: the expected information before any fit); returns it and the number of
+    simulated sets."""
     theta = np.asarray(theta, dtype=float)
     idx = problem.free_index
     names = problem.parameters.free_names
@@ -259,8 +262,7 @@ def information(problem: FitProblem, theta: np.ndarray, *, rtol: float = RANK_RT
     steps = np.concatenate([np.diag(h), -np.diag(h)])
     thetas = problem.full_vectors(np.vstack([free, free + steps]), theta)
     predicted = problem.predict(thetas, share_steps=True)     # row 0 sets the steps of all
-    residuals = problem.observed - predicted[0]
-    r = covariance(residuals)
+    r = covariance(problem.observed - predicted[0]) if noise_covariance is None else noise_covariance
     whiten = np.linalg.cholesky(np.linalg.inv(r))               # R⁻¹ = L Lᵀ
     sens = (predicted[1:p + 1] - predicted[p + 1:]) / (2.0 * h[:, None, None]) * scale[:, None, None]
     weighted = np.einsum("jkc,cd->kdj", sens, whiten).reshape(-1, p)
@@ -836,6 +838,8 @@ class IdentifiabilityResult:
     sets: dict[str, SensorSetResult]
     data: list[str] = field(default_factory=list)
     provenance: dict[str, Any] = field(default_factory=dict)
+    #: None: assessed around a fit; else the point assessed without one ("nominal" or a file)
+    at: str | None = None
 
     @property
     def primary(self) -> SensorSetResult:
@@ -877,6 +881,7 @@ class IdentifiabilityResult:
             "n_simulations": int(sum(r.n_simulations for r in self.sets.values())),
             "wall_time_s": float(sum(r.wall_time_s for r in self.sets.values())),
             "data": list(self.data),
+            "at": self.at,
             "provenance": self.provenance,
         }
 
@@ -897,4 +902,85 @@ def sensor_set_study(measurements: Sequence[Measurement], start: np.ndarray, fre
             raise IdentifiabilityError(f"sensor set {name} given twice; name each set once")
         results[name] = assess_sensor_set(measurements, start, free, channels, name=name, settings=settings,
                                           profile_names=profile_names, constants=constants, progress=progress)
+    return IdentifiabilityResult(model.name, results)
+
+
+# --------------------------------------------------------------------------------------
+# before any fit: the expected information at a point
+# --------------------------------------------------------------------------------------
+def expected_records(model: Model, experiments: Sequence, theta: np.ndarray,
+                     constants: np.ndarray | None = None) -> list[Measurement]:
+    """Noise-free records of every output of ``model`` at the full vector ``theta`` on each
+    experiment: what the data would be if ``theta`` were the truth."""
+    from .experiments import synthesize
+
+    return [synthesize(model, e, theta, noise=0.0, seed=None, constants=constants) for e in experiments]
+
+
+def assess_at_point(records: Sequence[Measurement], theta: np.ndarray, free: Sequence[str],
+                    channels: Sequence[str], *, noise: float, name: str = "custom",
+                    settings: ProfileSettings = ProfileSettings(), constants: np.ndarray | None = None
+                    ) -> SensorSetResult:
+    """Identifiability of ``free`` from ``channels`` at ``theta`` without a fit, to choose sensors.
+
+    ``records`` are the noise-free outputs at ``theta`` (:func:`expected_records`); R is the
+    noise the rig would add, diag((``noise`` x each channel's RMS over the records)²), so the
+    information matrix is the expected one. Profiles are skipped: they measure the rise of
+    the likelihood from its minimum on measured data, which a point without data has not;
+    every verdict comes from the information matrix (:func:`classify_information`).
+    """
+    from .experiments import noise_std
+
+    t0 = _time.perf_counter()
+    model = get_model(records[0].concept)
+    constants = model.constants_vector() if constants is None else np.asarray(constants, dtype=float)
+    free = [n for n in model.parameters.names if n in set(free)]
+    if not free:
+        raise IdentifiabilityError("no free parameter to assess; free at least one")
+    channels = tuple(channels)
+    problem = FitProblem(records, parameters=model.parameters.freeing_only(free), channels=channels,
+                         constants=constants)
+    sigma = noise_std(problem.observed, noise)
+    if not np.all(sigma > 0):
+        raise IdentifiabilityError(f"sensor set {name}: a channel is identically zero at this point, or the noise "
+                                   "level is 0; give a noise fraction > 0 (e.g. --noise 0.02)")
+    theta = np.asarray(theta, dtype=float)
+    info, n_sims = information(problem, theta, noise_covariance=np.diag(sigma ** 2))
+    std, in_null = info.std(), info.in_null_space()
+    values = theta[[model.parameters.index(n) for n in info.names]]
+    verdicts = {}
+    for j, pname in enumerate(info.names):
+        v, reason = classify_information(values[j], std[j], bool(in_null[j]),
+                                         max_relative_width=settings.max_relative_width)
+        verdicts[pname] = (v, "fim", reason)
+    friction = [n for n in info.names if n.startswith(("B_", "C_"))]
+    pairs, groups, triples = _collinearity_tables(info, friction, _station_groups(info.names))
+    combos = combinations(info, dict(zip(info.names, values)), model, constants)
+    return SensorSetResult(
+        name=name, concept=model.name, channels=channels, names=info.names, estimate=values,
+        objective=float("nan"), info=info, selected=tuple(identifiable_subset(info)), profiles={}, verdicts=verdicts,
+        collinearity_pairs=pairs, collinearity_groups=groups, collinearity_triples=triples, combinations=combos,
+        settings=settings, n_simulations=n_sims, wall_time_s=_time.perf_counter() - t0,
+        warnings=[f"no fit: expected information at the given point with noise {noise:g} x each channel's RMS; "
+                  "profiles skipped (they need the likelihood minimum of measured data), verdicts from the "
+                  "information matrix"],
+    )
+
+
+def sensor_set_study_at(model: Model, experiments: Sequence, theta: np.ndarray, free: Sequence[str],
+                        sets: Sequence[str | Mapping[str, Any]] = ("full", "realistic"), *, noise: float,
+                        settings: ProfileSettings = ProfileSettings(),
+                        constants: np.ndarray | None = None) -> IdentifiabilityResult:
+    """:func:`assess_at_point` for each sensor set on the noise-free records of ``experiments``
+    at ``theta``: the sensor-set study before any fit."""
+    if not experiments:
+        raise IdentifiabilityError("no experiment given; pass data files or an experiment name")
+    records = expected_records(model, experiments, theta, constants)
+    results = {}
+    for item in sets:
+        name, channels = sensor_set(model, item)
+        if name in results:
+            raise IdentifiabilityError(f"sensor set {name} given twice; name each set once")
+        results[name] = assess_at_point(records, theta, free, channels, noise=noise, name=name, settings=settings,
+                                        constants=constants)
     return IdentifiabilityResult(model.name, results)

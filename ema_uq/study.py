@@ -180,8 +180,12 @@ def settings_for(study: dict[str, Any], verb: str, *, role: str | None = None) -
         return _simulate_settings(study, role)
     if verb == "identify":
         ident = section(study, "identify")
-        return {"seed": seed, "perturb": ident["perturb"], "max_iterations": ident["max_iterations"],
-                "fix": list(ident.get("fix") or []), "channels": data.get("channels"), "set": overrides}
+        out = {"seed": seed, "perturb": ident["perturb"], "max_iterations": ident["max_iterations"],
+               "fix": list(ident.get("fix") or []), "channels": data.get("channels"), "set": overrides}
+        # only when the study names it (the CLI holds the default), so studies without it keep their settings
+        if "unidentifiable" in ident:
+            out["unidentifiable"] = ident["unidentifiable"]
+        return out
     if verb == "sample":
         s = section(study, "sample")
         return {"seed": seed, "walkers": s["walkers"], "chains": s["ensembles"], "max_steps": s["max_steps"],
@@ -195,7 +199,7 @@ def settings_for(study: dict[str, Any], verb: str, *, role: str | None = None) -
         return {"sensor_sets": ident["sensor_sets"], "profile": ident["profile_parameters"],
                 **{k: ident[k] for k in ("profile_points", "profile_sigmas", "profile_span", "max_relative_width",
                                          "collinearity_threshold")},
-                "set": overrides}
+                "noise": data["noise"], "set": overrides}
     if verb == "gap":
         return {"candidates": section(study, "gap")["candidates"], "channels": data.get("channels"),
                 "set": overrides}
