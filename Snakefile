@@ -257,12 +257,14 @@ rule gap_selfcheck:
         "results/{study}/logs/gap_selfcheck.log",
     benchmark:
         "results/{study}/benchmarks/gap_selfcheck.tsv"
+    # cases run in parallel worker processes; each is seeded on its own, so the output does not
+    # depend on the thread count
     threads: workflow.cores
     resources:
         mem_mb=3000,
         runtime=120,
     shell:
-        "ema-uq gap-selfcheck --study {params.study_file} --out {output} > {log} 2>&1"
+        "ema-uq gap-selfcheck --study {params.study_file} --jobs {threads} --out {output} > {log} 2>&1"
 
 
 rule report:

@@ -204,8 +204,9 @@ def settings_for(study: dict[str, Any], verb: str, *, role: str | None = None) -
         return {"candidates": section(study, "gap")["candidates"], "channels": data.get("channels"),
                 "set": overrides}
     if verb == "gap-selfcheck":
-        return {"seed": seed, "quick": section(study, "gap")["selfcheck"] == "quick",
-                "concepts": [study["concept"]]}
+        gap = section(study, "gap")
+        return {"seed": seed, "quick": gap["selfcheck"] == "quick", "concepts": [study["concept"]],
+                "none_per_set": gap["selfcheck_none_per_set"]}
     raise StudyError(f"verb {verb!r} takes no settings from a study; these do: {', '.join(STUDY_VERBS)}")
 
 

@@ -89,3 +89,35 @@ def gap_ledger(result):
                  + ("" if result.gap.get("shrink") is None else f" (shrink {result.gap['shrink']:.2f})"),
                  fontsize=10)
     return fig
+
+
+def selfcheck_confusion(selfcheck: dict):
+    """Confusion matrix of a self-check (SELFCHECK.json as a dict): rows the truth family
+    (``none``, ``outside catalogue``), columns the verdict label, cells the case counts;
+    the right cell of each row is framed. Returns a Figure."""
+    matrix = selfcheck["confusion"]
+
+    def order(label):
+        return ({"none": 1, "unexplained": 2, "outside catalogue": 2}.get(label, 0), label)
+
+    rows = sorted(matrix, key=order)
+    columns = sorted({lab for row in matrix.values() for lab in row} | {r for r in rows if r != "outside catalogue"}
+                     | ({"unexplained"} if "outside catalogue" in rows else set()), key=order)
+    counts = np.array([[matrix[r].get(c, 0) for c in columns] for r in rows], dtype=float)
+    fig, ax = plt.subplots(figsize=(1.1 * len(columns) + 3.0, 0.45 * len(rows) + 2.2))
+    shares = counts / np.maximum(counts.sum(axis=1, keepdims=True), 1.0)
+    ax.imshow(shares, cmap="Blues", vmin=0.0, vmax=1.0, aspect="auto")
+    for i, r in enumerate(rows):
+        for j, c in enumerate(columns):
+            if counts[i, j]:
+                ax.text(j, i, f"{counts[i, j]:.0f}", ha="center", va="center", fontsize=8,
+                        color="white" if shares[i, j] > 0.6 else "black")
+            if c == ("unexplained" if r == "outside catalogue" else r):
+                ax.add_patch(plt.Rectangle((j - 0.5, i - 0.5), 1, 1, fill=False, lw=1.5, ec="tab:green"))
+    ax.set_xticks(range(len(columns)), columns, rotation=35, ha="right", fontsize=8)
+    ax.set_yticks(range(len(rows)), rows, fontsize=8)
+    ax.set_xlabel("verdict (family named, none, unexplained)", fontsize=8)
+    ax.set_ylabel("truth family", fontsize=8)
+    ax.set_title(f"Gap self-check: {selfcheck['n_cases']} cases (green frame: right verdict)", fontsize=9, loc="left")
+    fig.tight_layout()
+    return fig
