@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from ema_uq import get_model, io, simulate_batch
+from ema_uq import cranfield as study
 from ema_uq.identify import FitProblem, Settings, estimate
 from ema_uq.models import cranfield
 
@@ -150,13 +151,32 @@ def test_backlash_adds_lost_motion_at_reversals_and_friction_raises_the_moving_c
     out = simulate_batch(play, play.parameters.nominal, time, inputs)
     reversal = slice(324, 340)                      # second cycle: up stroke right after the down stroke
     assert out[reversal, 1].max() > nominal[reversal, 1].max() + 4e-4
-    friction = MODEL.with_effects(["friction_increase"], {"friction_increase_dC": 300.0})
+    friction = MODEL.with_effects(["friction_increase"], {"friction_increase_dC_pos": 300.0, "friction_increase_dC_neg": 0.0})
     out = simulate_batch(friction, friction.parameters.nominal, time, inputs)
     moving, dwell = slice(40, 120), slice(170, 199)
     np.testing.assert_array_equal(out[:, 1], nominal[:, 1])
+    speed = 0.024
+    k_w, v_p = MODEL.parameters["k_w"].nominal, MODEL.parameters["v_p"].nominal
     assert out[moving, 2].mean() - nominal[moving, 2].mean() == pytest.approx(
-        0.023 * 300 * 0.024, rel=0.25)              # k_w dC |v| at the stroke speed
+        k_w * speed * (1 + speed / v_p) * 300.0, rel=0.1)   # k_w g(u) dC at the stroke speed
     assert abs(out[dwell, 2].mean() - nominal[dwell, 2].mean()) < 0.01
+    # the negative-load value acts only under a negative load
+    _, negative = _inputs(-40.0)
+    assert np.array_equal(simulate_batch(friction, friction.parameters.nominal, time, negative),
+                          simulate_batch(MODEL, MODEL.parameters.nominal, time, negative))
+
+
+def test_ball_contact_friction_of_backlash_scales_with_preload_plus_load():
+    theta = MODEL.with_effects(["backlash"], {"backlash_play": 0.0, "backlash_dmu_pos": 0.5})
+    moving = slice(40, 120)
+    change = []
+    for load in (20.0, 40.0):
+        time, inputs = _inputs(load)
+        nominal = simulate_batch(MODEL, MODEL.parameters.nominal, time, inputs)
+        change.append(simulate_batch(theta, theta.parameters.nominal, time, inputs)[moving, 2].mean()
+                      - nominal[moving, 2].mean())
+    preload = MODEL.constants["preload"].nominal
+    assert change[1] / change[0] == pytest.approx((preload + 40 * 9.80665) / (preload + 20 * 9.80665), rel=0.05)
 
 
 # --------------------------------------------------------------------------------------
@@ -173,7 +193,9 @@ def normal_fit():
 def test_fit_on_normal_converges_and_predicts_held_out_runs(normal_fit):
     problem, fit = normal_fit
     assert fit.converged
-    assert np.all(fit.std / np.abs(fit.estimate[problem.free_index]) < 0.05)
+    relative = dict(zip(fit.names, fit.std / np.abs(fit.estimate[problem.free_index])))
+    # v_p (where a delivered force starts to cost more than power-like) is the loosest: ~20 % on two runs
+    assert relative.pop("v_p") < 0.3 and max(relative.values()) < 0.05
     held = io.read_cranfield(_data_file("normal"), runs=[9], channels=CHANNELS)
     residual, observed = [], []
     for m in held:
@@ -184,3 +206,47 @@ def test_fit_on_normal_converges_and_predicts_held_out_runs(normal_fit):
     nrmse = np.sqrt(np.mean(residual ** 2, axis=0) / np.mean(observed ** 2, axis=0))
     # measured: position error 0.26 (its white noise alone is ~0.2), current 0.085
     assert nrmse[0] < 0.3 and nrmse[1] < 0.1
+
+
+# --------------------------------------------------------------------------------------
+# fault diagnosis against the healthy fit (a reduced study: ~40 s)
+# --------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def diagnosed():
+    for name in study.EXPECTED:
+        _data_file(name)
+
+    def read(name, runs):
+        return io.read_cranfield(io.cranfield_file(name), runs=runs, channels=CHANNELS)
+
+    return study.run_study(read, fit_runs=(1, 2, 3), healthy_held_out_runs=(6, 7, 8, 9),
+                           estimation_runs=(1, 2), held_out_runs=(3, 4))
+
+
+@pytest.mark.parametrize("record_set", ["normal", "backlash2", "lackLubrication1", "lackLubrication2"])
+def test_fault_diagnosis_names_the_seeded_fault(diagnosed, record_set):
+    assert diagnosed.verdict_of(record_set) == study.EXPECTED[record_set]
+    result = next(d.result for d in diagnosed.diagnoses if d.record_set == record_set)
+    if record_set != "normal":
+        # the shrink is scored on a held-out block that did not select the winner
+        assert result.gap["shrink"] > 0.5
+        assert result.ranking[0].delta_bic > result.ranking[1].delta_bic
+
+
+def test_backlash1_ranks_backlash_first(diagnosed):
+    result = next(d.result for d in diagnosed.diagnoses if d.record_set == "backlash1")
+    assert result.ranking[0].effect == "backlash"
+    assert result.effect_parameters["backlash_dmu_pos"]["estimate"] < 0    # the lost preload lowers the drag
+
+
+@pytest.mark.xfail(strict=True, reason="backlash1 (3.0 mm balls) changes the current by only -0.04 A; backlash "
+                                       "ranks first but closes under half of the held-out current gap")
+def test_backlash1_verdict(diagnosed):
+    assert diagnosed.verdict_of("backlash1") == "backlash"
+
+
+def test_study_serialises(diagnosed):
+    data = diagnosed.to_json()
+    assert [d["record_set"] for d in data["diagnoses"]] == list(study.EXPECTED)
+    assert data["reference"]["thinning_stride"] >= 1
+    assert "Cranfield linear actuator" in diagnosed.summary()

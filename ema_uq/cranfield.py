@@ -1,0 +1,395 @@
+"""The Cranfield linear actuator study: a fit of the rig model (``ema_uq.models.cranfield``) on
+the healthy records and the fault diagnosis of the seeded-fault record sets against it, through
+the one gap diagnosis (:func:`ema_uq.gap.diagnose`) with this rig's strategy
+(:func:`cranfield_strategy`): the base parameters held at the healthy fit and only the candidate
+effect's parameters fitted, since a refit of the base would absorb a friction change.
+
+Two choices make the diagnosis's statistics fit real records:
+
+- *Thinning.* The healthy fit's residual is coloured (integrated autocorrelation time ~6
+  samples on the current): the det R likelihood, which counts every sample as independent,
+  would overstate every likelihood ratio by that factor. The effect parameters are therefore
+  fitted on every ``stride``-th sample only (:func:`thinning_stride`: the integrated
+  autocorrelation time of the healthy residual, rounded up), the others marked missing, so
+  ΔBIC compares like with like. (The held-out gain, read on every sample, stays inflated by
+  that factor; it is a second condition, not the first.)
+- *Gap relative to the healthy rig.* The gap metric (:class:`ExcessNrmse`) is the excess of
+  the held-out residual's systematic mean square (short-lag products: no white noise) over the
+  healthy fit's own on healthy records (the model's own error), channel by channel; it is
+  significant when it exceeds three standard errors of the block-to-block spread of healthy
+  records. So healthy held-out records have no gap, and a fault's gap shrinks to zero when its
+  effect explains it.
+
+Everything here is numerics on :class:`~ema_uq.experiments.Measurement` blocks (read by
+:func:`ema_uq.io.read_cranfield`); results are documented objects with ``summary()`` and
+``to_json()``.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+
+from .experiments import Measurement
+from .gap.localize import RegimeRms, lag_products
+from .gap.strategy import DiagnosisSettings, DiagnosisStrategy, Thresholds, register_strategy
+from .identify import FitProblem, FitResult, Settings, estimate
+from .models import get_model
+from .simulate import simulate_batch
+
+#: fitted channels: the potentiometer error (its residual equals the position's, but its RMS is
+#: the loop's lag, not the 120 mm stroke, so the gap is expressed on the scale that matters) and
+#: the drive current
+CHANNELS = ("position_error", "current")
+START_S = 0.8          # a stroke start or stop and the loop's settling after it [s]
+SIGNIFICANT_Z = 3.0    # standard errors of the healthy spread an excess must pass to be a gap
+MAX_LAG = 60           # samples of the autocorrelation used for the thinning stride
+
+
+# --------------------------------------------------------------------------------------
+# healthy fit and the statistics taken from it
+# --------------------------------------------------------------------------------------
+def fit_healthy(measurements: Sequence[Measurement], *, max_iterations: int = 30) -> FitResult:
+    """ML fit (det R, Gauss-Newton from the nominal values) of every base parameter on healthy blocks."""
+    problem = FitProblem(measurements, channels=CHANNELS)
+    return estimate(problem, method="gn", settings=Settings(max_iterations=max_iterations))
+
+
+def residuals(theta: np.ndarray, measurements: Sequence[Measurement], model=None) -> list[np.ndarray]:
+    """Measured minus simulated ``CHANNELS`` (n, 2) of each block at full parameter vector ``theta``."""
+    model = get_model("cranfield") if model is None else model
+    index = model.output_index(CHANNELS)
+    out = []
+    for m in measurements:
+        simulated = simulate_batch(model, theta, m.time, m.experiment.input_matrix(model))
+        out.append(m.select(CHANNELS).values - simulated[:, index])
+    return out
+
+
+def thinning_stride(residual_blocks: Sequence[np.ndarray], max_lag: int = MAX_LAG) -> int:
+    """Integrated autocorrelation time of the residual (channel maximum, autocorrelation averaged
+    over blocks, Sokal's window: the first lag M >= 5 tau(M)), rounded up: the sample spacing at
+    which the residual is about independent."""
+    taus = []
+    for c in range(residual_blocks[0].shape[1]):
+        acs = []
+        for r in residual_blocks:
+            e = r[:, c] - np.nanmean(r[:, c])
+            e = np.where(np.isfinite(e), e, 0.0)
+            acs.append([np.dot(e[: e.size - lag], e[lag:]) / np.dot(e, e) for lag in range(max_lag)])
+        tau = 1.0 + 2.0 * np.cumsum(np.mean(acs, axis=0)[1:])
+        window = next((m for m in range(1, max_lag) if m >= 5.0 * tau[m - 1]), max_lag - 1)
+        taus.append(tau[window - 1])
+    return max(1, int(math.ceil(max(taus))))
+
+
+def thinned(measurements: Sequence[Measurement], stride: int) -> list[Measurement]:
+    """Copies of the blocks in which only every ``stride``-th sample is kept (the others NaN:
+    missing for the fits and figures; the simulation still runs over every sample)."""
+    out = []
+    for m in measurements:
+        values = np.full_like(m.values, np.nan)
+        values[::stride] = m.values[::stride]
+        out.append(Measurement(m.concept, m.experiment, m.channels, values, {**m.attrs, "thinning_stride": stride}))
+    return out
+
+
+@dataclass(frozen=True)
+class ExcessNrmse:
+    """Gap metric of the fault diagnosis: sqrt(mean over the gap channels of max(0, S_c / s_c² -
+    base_c)), where S_c is the systematic mean square of the held-out residual of channel c (the
+    mean of its short-lag products, :func:`ema_uq.gap.localize.lag_products`, which white noise
+    leaves at zero, so a change of the sensor noise between test sessions is no gap), s_c its
+    healthy scale and ``base_c`` the same figure of the healthy fit on healthy blocks it did not
+    see (the model's own error). Significant when the mean excess passes ``SIGNIFICANT_Z``
+    standard errors, sd / sqrt(blocks), of its block-to-block spread ``spread_sd`` on those
+    healthy blocks. ``per_channel`` reports the excess of every fitted channel; ``channels``,
+    ``scale``, ``base``, ``spread_sd``: (m,); ``gap_channels``: the channels the gap averages."""
+
+    channels: tuple[str, ...]
+    scale: tuple[float, ...]
+    base: tuple[float, ...]
+    spread_sd: tuple[float, ...]
+    gap_channels: tuple[str, ...]
+    description: str = "held-out excess systematic NRMSE of the drive current over the healthy fit on healthy records"
+
+    @classmethod
+    def from_healthy(cls, residual_blocks: Sequence[np.ndarray], observed_blocks: Sequence[np.ndarray],
+                     channels: Sequence[str] = CHANNELS, gap_channels: Sequence[str] = ("current",)) -> "ExcessNrmse":
+        """From the healthy fit's residuals and the measured values (each (n, m)) of healthy blocks it did not see."""
+        scale = np.sqrt(np.mean(np.concatenate(observed_blocks) ** 2, axis=0))
+        per_block = np.array([np.nanmean(lag_products(r), axis=0) / scale ** 2 for r in residual_blocks])
+        return cls(tuple(channels), tuple(scale), tuple(per_block.mean(axis=0)), tuple(per_block.std(axis=0, ddof=1)),
+                   tuple(gap_channels))
+
+    @property
+    def _index(self) -> np.ndarray:
+        return np.array([self.channels.index(c) for c in self.gap_channels])
+
+    def figures(self, records, measurements, model, channels, segments, spread) -> dict[str, Any]:
+        p = np.concatenate([lag_products(seg) for seg in segments])
+        p = p[np.all(np.isfinite(p), axis=1)]
+        terms = np.column_stack([p / np.asarray(self.scale) ** 2, np.ones(p.shape[0])])
+        excess = self._excess(terms.sum(axis=0))
+        n_blocks = max(1, sum(1 for r in records if np.any(np.isfinite(r.residual))))
+        se = float(np.mean(np.asarray(self.spread_sd)[self._index])) / math.sqrt(n_blocks)
+        mean_excess = float(np.mean((terms[:, :-1].mean(axis=0) - np.asarray(self.base))[self._index]))
+        return {"gap": float(np.sqrt(np.mean(excess[self._index]))), "z": mean_excess / se if se > 0 else float("nan"),
+                "factors": 0, "per_channel": dict(zip(self.channels, map(float, np.sqrt(excess)))),
+                "significant": bool(mean_excess > SIGNIFICANT_Z * se), "terms": terms}
+
+    def _excess(self, sums: np.ndarray) -> np.ndarray:
+        return np.maximum(sums[..., :-1] / sums[..., -1:] - np.asarray(self.base), 0.0)
+
+    def combine(self, sums: np.ndarray) -> np.ndarray:
+        return np.sqrt(np.mean(self._excess(sums)[..., self._index], axis=-1))
+
+    def to_json(self) -> dict[str, Any]:
+        return {"channels": list(self.channels), "scale": list(self.scale), "base": list(self.base),
+                "spread_sd": list(self.spread_sd), "gap_channels": list(self.gap_channels),
+                "significant_z": SIGNIFICANT_Z}
+
+
+# --------------------------------------------------------------------------------------
+# regimes and localisation
+# --------------------------------------------------------------------------------------
+def regime_masks(measurement: Measurement) -> dict[str, np.ndarray]:
+    """Sample masks from the set point and load of one block: ``reversal`` (0.8 s from every
+    change of the set-point speed: stroke starts, the reversal at the bottom, the stop at the
+    top), ``low_speed`` (set point at rest, after that window), ``constant_speed`` (moving,
+    after that window), ``up``/``down`` (set point rising/falling), ``high_load`` (moving under
+    40 kgf, the largest load) and ``negative_load``."""
+    dt = measurement.experiment.dt
+    x_sp = measurement["x_sp"]
+    direction = np.sign(np.round(np.append(np.diff(x_sp), 0.0) / dt, 9))
+    near = np.zeros(x_sp.size, dtype=bool)
+    reach = int(round(START_S / dt))
+    for k in np.concatenate([[0], np.flatnonzero(np.diff(direction) != 0) + 1]):
+        near[k: k + reach] = True
+    moving = direction != 0
+    load = measurement["F_load"]
+    return {"reversal": near, "low_speed": ~moving & ~near, "constant_speed": moving & ~near,
+            "up": direction > 0, "down": direction < 0, "high_load": moving & (np.abs(load) >= 0.99 * 40 * 9.80665),
+            "negative_load": load < 0}
+
+
+def residual_by_regime(records, channels, model, theta, measurements, spread, constants=None) -> RegimeRms:
+    """Localisation: RMS by regime (:func:`regime_masks`) of the channel-normalised residual
+    sqrt(Σ_c (e_c / spread_c)² / m) (position error and current weigh alike)."""
+    residual_parts, masks = [], []
+    for record, m in zip(records, measurements):
+        e = record.residual / np.asarray(spread)[None, :]
+        ok = np.all(np.isfinite(e), axis=1)
+        residual_parts.append(np.sqrt(np.mean(e[ok] ** 2, axis=1)))
+        masks.append({k: v[ok] for k, v in regime_masks(m).items()})
+    joined = {k: np.concatenate([mk[k] for mk in masks]) for k in masks[0]}
+    return RegimeRms.of("+".join(channels), np.concatenate(residual_parts), joined)
+
+
+# --------------------------------------------------------------------------------------
+# the strategy
+# --------------------------------------------------------------------------------------
+#: Verdict thresholds: the package's frozen ones (ΔBIC > 25, held-out gain > 25, shrink >= 0.5
+#: where the gap is significant), applied to thinned records; the signature is reported, not
+#: scored (weight 0: the regimes are this rig's, not the catalogue's calibration).
+THRESHOLDS = Thresholds(signature_weight=0.0)
+
+
+def cranfield_strategy(reference_fit: Mapping[str, float] | None = None, metric: ExcessNrmse | None = None) -> DiagnosisStrategy:
+    """How :func:`ema_uq.gap.diagnose` treats the rig. With ``reference_fit`` (base parameter
+    values of the healthy fit) a fault diagnosis: base held there, only effect parameters fitted
+    (Gauss-Newton, 30 iterations, from the start grid at 0.3, 1, 3, 10 x ``Effect.start``);
+    ``metric`` the gap relative to the healthy rig (default: the systematic NRMSE)."""
+    from .gap.strategy import SystematicNrmse
+
+    strategy = DiagnosisStrategy(
+        name="cranfield", channels=CHANNELS,
+        settings=DiagnosisSettings(candidate_max_iterations=30, screen_base_parameters=None, final_max_iterations=30),
+        start_multiples=(0.3, 1.0, 3.0, 10.0), metric=metric or SystematicNrmse(), localize=residual_by_regime,
+        where_source="held-out", thresholds=THRESHOLDS)
+    return strategy if reference_fit is None else strategy.with_reference(reference_fit)
+
+
+CRANFIELD_STRATEGY = cranfield_strategy()
+register_strategy("cranfield", "ema_uq.cranfield:CRANFIELD_STRATEGY")
+
+
+# --------------------------------------------------------------------------------------
+# the study: healthy fit, then one diagnosis per record set
+# --------------------------------------------------------------------------------------
+@dataclass
+class HealthyReference:
+    """The healthy fit and what the fault diagnosis takes from it: the thinning ``stride`` and
+    the gap ``metric``; ``nrmse_held_out`` per channel on healthy blocks the fit did not see."""
+
+    fit: FitResult
+    stride: int
+    metric: ExcessNrmse
+    nrmse_held_out: dict[str, float]
+    fit_blocks: list[str]
+    held_out_blocks: list[str]
+    wall_time_s: float
+
+    @property
+    def values(self) -> dict[str, float]:
+        return self.fit.as_dict()
+
+    def strategy(self) -> DiagnosisStrategy:
+        return cranfield_strategy(self.values, self.metric)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"estimate": self.values, "std": dict(zip(self.fit.names, map(float, self.fit.std))),
+                "converged": bool(self.fit.converged), "iterations": int(self.fit.iterations),
+                "thinning_stride": self.stride, "metric": self.metric.to_json(),
+                "nrmse_held_out": self.nrmse_held_out, "fit_blocks": self.fit_blocks,
+                "held_out_blocks": self.held_out_blocks, "wall_time_s": self.wall_time_s}
+
+
+def healthy_reference(fit_blocks: Sequence[Measurement], baseline_blocks: Sequence[Measurement],
+                      held_out_blocks: Sequence[Measurement] = ()) -> HealthyReference:
+    """Fit on healthy ``fit_blocks``; the thinning stride from that fit's residual there; the gap
+    metric's healthy baseline from its residual on healthy ``baseline_blocks`` the fit did not
+    see (a fitted record's residual is smaller than a new one's); NRMSE (RMS residual / RMS
+    measured, per channel) on ``baseline_blocks`` and ``held_out_blocks``, all unseen by the fit."""
+    t0 = time.perf_counter()
+    fit = fit_healthy(fit_blocks)
+    stride = thinning_stride(residuals(fit.estimate, fit_blocks))
+    baseline = residuals(fit.estimate, baseline_blocks)
+    metric = ExcessNrmse.from_healthy(baseline, [m.select(CHANNELS).values for m in baseline_blocks])
+    unseen = list(baseline_blocks) + list(held_out_blocks)
+    held = np.concatenate(baseline + residuals(fit.estimate, held_out_blocks))
+    measured = np.concatenate([m.select(CHANNELS).values for m in unseen])
+    nrmse = np.sqrt(np.mean(held ** 2, axis=0) / np.mean(measured ** 2, axis=0))
+    return HealthyReference(fit, stride, metric, dict(zip(CHANNELS, map(float, nrmse))),
+                            [m.experiment.name for m in fit_blocks], [m.experiment.name for m in unseen],
+                            time.perf_counter() - t0)
+
+
+@dataclass
+class RecordSetDiagnosis:
+    """The gap diagnosis of one record set against the healthy fit: ``result`` (a
+    :class:`~ema_uq.gap.GapResult`), the blocks whose effect parameters were fitted and those
+    held out (the last of them scores the shrink)."""
+
+    record_set: str
+    result: Any
+    estimation_blocks: list[str]
+    held_out_blocks: list[str]
+
+    def row(self) -> dict[str, Any]:
+        r = self.result
+        runner_up = r.ranking[1].effect if len(r.ranking) > 1 else None
+        return {"record_set": self.record_set, "verdict": r.verdict, "effect": r.effect, "confidence": r.confidence,
+                "best": r.ranking[0].effect if r.ranking else None, "runner_up": runner_up,
+                "score_margin": (r.ranking[0].score - r.ranking[1].score) if len(r.ranking) > 1 else float("nan"),
+                "gap_before": r.gap.get("before"), "gap_after": r.gap.get("after"), "shrink": r.gap.get("shrink"),
+                "shrink_se": r.gap.get("shrink_se"), "significant_before": r.gap.get("significant_before"),
+                "effect_parameters": r.effect_parameters, "wall_time_s": r.wall_time_s}
+
+
+@dataclass
+class CranfieldStudy:
+    """The healthy fit and the verdict of every record set (``diagnoses``), with ``expected``
+    verdicts (record set -> effect name or "none") when known."""
+
+    reference: HealthyReference
+    diagnoses: list[RecordSetDiagnosis]
+    expected: dict[str, str] = field(default_factory=dict)
+    wall_time_s: float = 0.0
+
+    def verdict_of(self, record_set: str) -> str:
+        r = next(d.result for d in self.diagnoses if d.record_set == record_set)
+        return r.effect if r.verdict == "effect" else r.verdict
+
+    def summary(self) -> str:
+        ref = self.reference
+        lines = [f"[[Cranfield linear actuator]] healthy fit on {len(ref.fit_blocks)} blocks "
+                 f"({'converged' if ref.fit.converged else 'NOT converged'}, {ref.fit.iterations} iterations); "
+                 f"held-out NRMSE " + ", ".join(f"{c} {v:.3f}" for c, v in ref.nrmse_held_out.items())
+                 + f"; thinning stride {ref.stride}",
+                 f"    {'record set':<18} {'verdict':<18} {'expected':<18} {'runner-up':<18} {'gap before':>10} "
+                 f"{'after':>7} {'shrink':>13} {'s':>6}"]
+        for d in self.diagnoses:
+            row = d.row()
+            verdict = row["effect"] if row["verdict"] == "effect" else row["verdict"]
+            shrink = row["shrink"]
+            shrink_text = "-" if shrink is None else (f"{shrink:.2f}" + ("" if row["shrink_se"] is None
+                                                                           else f" +/- {row['shrink_se']:.2f}"))
+            lines.append(f"    {d.record_set:<18} {verdict:<18} {self.expected.get(d.record_set, '?'):<18} "
+                         f"{row['runner_up'] or '-':<18} {row['gap_before']:>10.4f} {row['gap_after']:>7.4f} "
+                         f"{shrink_text:>13} {row['wall_time_s']:>6.1f}")
+            for name, p in (row["effect_parameters"] if row["verdict"] == "effect" else {}).items():
+                lines.append(f"        {name:<30} = {p['estimate']:.4g} +/- {p['std']:.2g} {p.get('unit', '')}")
+        lines.append(f"    wall time {self.wall_time_s:.0f} s")
+        return "\n".join(lines)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"reference": self.reference.to_json(), "expected": self.expected,
+                "diagnoses": [{**d.row(), "estimation_blocks": d.estimation_blocks,
+                               "held_out_blocks": d.held_out_blocks, "gap": d.result.to_json()} for d in self.diagnoses],
+                "wall_time_s": self.wall_time_s}
+
+
+#: Loads in the order the held-out blocks are given: the last held-out block scores the shrink,
+#: and it is the 40 kgf one, the largest load pushing the carriage up the stroke.
+HELD_OUT_LOAD_ORDER = (20.0, -40.0, 40.0)
+
+
+def _ordered(blocks: Sequence[Measurement]) -> list[Measurement]:
+    return sorted(blocks, key=lambda m: (m.attrs["run"], HELD_OUT_LOAD_ORDER.index(m.attrs["load_kgf"])
+                                         if m.attrs["load_kgf"] in HELD_OUT_LOAD_ORDER else -1))
+
+
+def diagnose_record_set(reference: HealthyReference, name: str, estimation: Sequence[Measurement],
+                        held_out: Sequence[Measurement], *, seed: int = 0,
+                        progress: Callable[[str], None] | None = None) -> RecordSetDiagnosis:
+    """The gap diagnosis of one record set against ``reference`` (base parameters held): effect
+    parameters fitted on the thinned ``estimation`` blocks, verdict and shrink on ``held_out``
+    (every sample: the gap metric reads short-lag products); the held-out blocks go in
+    :data:`HELD_OUT_LOAD_ORDER`, so the last, which scores the shrink, is at 40 kgf."""
+    from .gap import diagnose
+
+    held_out = _ordered(held_out)
+    result = diagnose(thinned(estimation, reference.stride), held_out,
+                      strategy=reference.strategy(), seed=seed, progress=progress)
+    return RecordSetDiagnosis(name, result, [m.experiment.name for m in estimation],
+                              [m.experiment.name for m in held_out])
+
+
+#: The verdict each record set of the rig should get.
+EXPECTED = {"normal": "none", "backlash1": "backlash", "backlash2": "backlash",
+            "lackLubrication1": "friction_increase", "lackLubrication2": "friction_increase"}
+
+
+def run_study(read: Callable[[str, Sequence[int]], list[Measurement]], *, fit_runs: Sequence[int] = (1, 2, 3, 4, 5),
+              healthy_held_out_runs: Sequence[int] = (6, 7, 8, 9, 10), estimation_runs: Sequence[int] = (1, 2, 3, 4, 5),
+              held_out_runs: Sequence[int] = (6, 7, 8, 9, 10), record_sets: Sequence[str] = tuple(EXPECTED),
+              seed: int = 0, progress: Callable[[str], None] | None = None) -> CranfieldStudy:
+    """Fit on the healthy runs ``fit_runs`` of ``normal``, then diagnose each record set.
+
+    ``read(record_set, runs)`` returns the blocks of those runs (every load). The first two
+    ``healthy_held_out_runs`` give the gap metric's healthy baseline and, for the ``normal``
+    diagnosis, fit the effect parameters; the others are the held-out healthy records of that
+    diagnosis. The faulted sets fit effect parameters on ``estimation_runs`` and are judged on
+    ``held_out_runs``.
+    """
+    t0 = time.perf_counter()
+    say = progress or (lambda _line: None)
+    healthy_held = list(healthy_held_out_runs)
+    baseline, healthy_rest = read("normal", healthy_held[:2]), read("normal", healthy_held[2:])
+    reference = healthy_reference(read("normal", fit_runs), baseline, healthy_rest)
+    say(f"healthy fit: NRMSE {reference.nrmse_held_out}, stride {reference.stride}, {reference.wall_time_s:.1f} s")
+    diagnoses = []
+    for name in record_sets:
+        if name == "normal":
+            estimation, held = baseline, healthy_rest
+        else:
+            estimation, held = read(name, estimation_runs), read(name, held_out_runs)
+        d = diagnose_record_set(reference, name, estimation, held, seed=seed)
+        say(f"{name}: {d.row()['verdict']} {d.row()['effect'] or ''} ({d.result.wall_time_s:.1f} s)")
+        diagnoses.append(d)
+    return CranfieldStudy(reference, diagnoses, {k: EXPECTED[k] for k in record_sets if k in EXPECTED},
+                          time.perf_counter() - t0)
