@@ -176,7 +176,8 @@ class DiagnosisStrategy:
 DEFAULT_STRATEGY = DiagnosisStrategy()
 
 #: concept -> strategy, or "module:attribute" imported on first use
-_REGISTRY: dict[str, DiagnosisStrategy | str] = {"emps": "ema_uq.emps_benchmark:EMPS_STRATEGY"}
+_REGISTRY: dict[str, DiagnosisStrategy | str] = {"emps": "ema_uq.emps_benchmark:EMPS_STRATEGY",
+                                                 "cranfield": "ema_uq.cranfield:CRANFIELD_STRATEGY"}
 
 
 def register_strategy(concept: str, strategy: DiagnosisStrategy | str) -> None:
