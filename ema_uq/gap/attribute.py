@@ -102,6 +102,7 @@ from .. import statistics
 from ..experiments import Measurement
 from ..identify import FitProblem, FitResult, IdentificationError, Settings, estimate
 from ..models import get_model
+from ..params import ParameterError
 from ..simulate import SimulationError, simulate_batch
 from .localize import ResidualRecord, complete_runs
 from .result import CandidateScore, GapResult
@@ -592,7 +593,8 @@ def _candidate(run: _Diagnosis, reference: _Reference, name: str, effect, loc, f
         # trial points that simulate to NaN have det R = NaN; the optimiser rejects them
         with np.errstate(invalid="ignore", over="ignore"):
             refit = _refit(run, reference, name, effect, **kwargs)
-    except (IdentificationError, SimulationError, np.linalg.LinAlgError) as exc:
+    except (IdentificationError, SimulationError, ParameterError, np.linalg.LinAlgError) as exc:
+        # ParameterError: an effect that cannot join the selected ones (the same coupling twice)
         run.say(f"  {name}: refit failed ({exc})")
         return CandidateScore(name, float("-inf"), reference.figures["scoring"]["gap"], float("nan"), float("nan"),
                               float("nan"), float("nan"), float("nan"), 0.0, 0,

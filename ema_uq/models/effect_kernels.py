@@ -51,6 +51,15 @@ FX_UJOINT = LAYOUT["ujoint_kinematics"]
 FX_LOAD_FRICTION = LAYOUT["load_dependent_friction"]
 FX_RIPPLE = LAYOUT["torque_ripple"]
 FX_RIPPLE_PERIODS = LAYOUT["torque_ripple_periods"]         # periods per motor revolution
+FX_COUPLING = LAYOUT["backlash_compliant"]
+FX_COUPLING_LOAD_FRACTION = LAYOUT["backlash_compliant_load_fraction"]    # [1]
+FX_COUPLING_OMEGA_MAX = LAYOUT["backlash_compliant_mode_omega_max"]       # [rad/s]
+FX_COUPLING_SOFTNESS = LAYOUT["backlash_compliant_softness"]              # [1]
+FX_NUT_PLAY = LAYOUT["backlash_output"]
+FX_NUT_PLAY_RELAXATION = LAYOUT["backlash_output_relaxation"]  # [s]
+FX_NUT_PLAY_SOFTNESS = LAYOUT["backlash_output_softness"]      # [1]
+FX_HARMONICS = LAYOUT["torque_ripple_harmonics"]
+FX_HARMONICS_PERIODS = LAYOUT["torque_ripple_harmonics_periods"]  # fundamental periods per motor revolution
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -66,6 +75,48 @@ def _tanh(z):
 def smooth_sign(v, eps):
     """components.smooth_sign, bit for bit, without the tanh call where it saturates."""
     return _tanh(v / eps)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _play_slope(b, half_play, softness):
+    """b_eff'(b) of :func:`_play`: 1 inside the play, 0 at a flank (the load carries 1 - it)."""
+    w2 = 2.0 * softness * half_play
+    return 0.5 * (_tanh((b + half_play) / w2) - _tanh((b - half_play) / w2))
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _play_rate(b, half_play, softness, relaxation, drive):
+    """db/dt of :func:`_play`."""
+    stop = half_play * (1.0 + 8.0 * softness)
+    if b > stop:
+        return drive - (b - stop) / relaxation
+    if b < -stop:
+        return drive - (b + stop) / relaxation
+    return drive
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _dead_band(q, band, width):
+    """Twist beyond a dead band ±band with corners smoothed over ``width``, and its slope
+    (0 inside the band, 1 in contact): the spring's deflection and the damper's weight."""
+    if width <= 0.0:
+        return q, 1.0
+    a = q - band
+    b = q + band
+    ra = math.sqrt(a * a + width * width)
+    rb = math.sqrt(b * b + width * width)
+    return 0.5 * (a + ra) + 0.5 * (b - rb), 0.5 * (1.0 + a / ra) + 0.5 * (1.0 - b / rb)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _coupling_rate(net, load, j_motor, j_load, omega_n, zeta, q, q_rate, band, softness):
+    """d²q/dt² of the modal two-inertia coupling: a plain spring (band < 0: shaft_compliance's
+    arithmetic, unchanged) or one acting beyond a dead band ±band (backlash_compliant)."""
+    if band < 0.0:
+        return (net + load) / j_motor + load / j_load - omega_n * omega_n * q - 2.0 * zeta * omega_n * q_rate
+    deflection, contact = _dead_band(q, band, softness * band)
+    return ((net + load) / j_motor + load / j_load
+            - omega_n * omega_n * deflection - 2.0 * zeta * omega_n * contact * q_rate)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -171,6 +222,45 @@ def _compliance(x, th, p_sc, x_sc, load_fraction, omega_max):
 
 
 @njit(cache=True, inline="always", error_model="numpy")
+def _harmonic_ripple(th, c, t, theta_m, k_n):
+    """torque_ripple_harmonics: k_n A (sin(n θ + φ1) + h2 sin(2 n θ + φ2) + h3 sin(3 n θ + φ3))."""
+    p = int(c[t + FX_HARMONICS])
+    angle = c[t + FX_HARMONICS_PERIODS] * theta_m
+    return k_n * th[p] * (math.sin(angle + th[p + 1]) + th[p + 2] * math.sin(2.0 * angle + th[p + 3])
+                          + th[p + 4] * math.sin(3.0 * angle + th[p + 5]))
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _nut_contact(x, th, c, t, p_np, x_np, force1, force2):
+    """backlash_output: the load forces that reach the screws (only at a flank of the nut
+    play) and the plays' slopes; (force1, force2, 0, 0) unchanged when the effect is off."""
+    if p_np < 0 or not th[p_np] > 0.0:
+        return force1, force2, 0.0, 0.0
+    softness = c[t + FX_NUT_PLAY_SOFTNESS]
+    slope1 = _play_slope(x[x_np], th[p_np], softness)
+    slope2 = _play_slope(x[x_np + 1], th[p_np], softness)
+    return (1.0 - slope1) * force1, (1.0 - slope2) * force2, slope1, slope2
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _nut_play_rates(x, th, c, t, p_np, x_np, omega_u1, omega_u2, slope1, slope2, dx):
+    """backlash_output: the carriages' speeds in screw radians (the screw's, less its travel
+    inside the play), writing the plays' db/dt into ``dx``; the screws' when off."""
+    if p_np < 0:
+        return omega_u1, omega_u2
+    if not th[p_np] > 0.0:
+        dx[x_np] = 0.0
+        dx[x_np + 1] = 0.0
+        return omega_u1, omega_u2
+    softness, relaxation = c[t + FX_NUT_PLAY_SOFTNESS], c[t + FX_NUT_PLAY_RELAXATION]
+    b_rate1 = _play_rate(x[x_np], th[p_np], softness, relaxation, omega_u1)
+    b_rate2 = _play_rate(x[x_np + 1], th[p_np], softness, relaxation, omega_u2)
+    dx[x_np] = b_rate1
+    dx[x_np + 1] = b_rate2
+    return omega_u1 - slope1 * b_rate1, omega_u2 - slope2 * b_rate2
+
+
+@njit(cache=True, inline="always", error_model="numpy")
 def evaluate_htls_effects(x, u, th, c, dx, y):
     """HT/LS with the effects listed in the layout table of ``c``; states as ``htls.evaluate``
     followed by the effects' extra states (backlash: b1, b2; compliance: q, dq/dt)."""
@@ -186,12 +276,23 @@ def evaluate_htls_effects(x, u, th, c, dx, y):
     relaxation, softness = c[t + FX_BACKLASH_RELAXATION], c[t + FX_BACKLASH_SOFTNESS]
     load_fraction, omega_max = c[t + FX_LOAD_FRACTION], c[t + FX_MODE_OMEGA_MAX]
     periods = c[t + FX_RIPPLE_PERIODS]
+    p_np = int(c[t + FX_NUT_PLAY])
+    x_np = int(c[t + FX_NUT_PLAY + 1])
 
     eps = c[H.C_OMEGA_EPS]
     i_tp1 = c[H.C_I_TP1]
     i_tp2 = c[H.C_I_TP2]
     omega = x[H.X_OMEGA]
     theta = x[H.X_THETA]
+    # one compliant coupling: shaft_compliance's spring, or backlash_compliant's beyond its band
+    band = -1.0
+    coupling_softness = 0.0
+    p_bc = int(c[t + FX_COUPLING])
+    if p_bc >= 0:
+        p_sc, x_sc = p_bc + 1, int(c[t + FX_COUPLING + 1])
+        load_fraction, omega_max = c[t + FX_COUPLING_LOAD_FRACTION], c[t + FX_COUPLING_OMEGA_MAX]
+        coupling_softness = c[t + FX_COUPLING_SOFTNESS]
+        band = th[p_bc] * i_tp1
 
     # motor side and shaft end (rigid: both the state Ω)
     omega_m = omega
@@ -225,14 +326,16 @@ def evaluate_htls_effects(x, u, th, c, dx, y):
     omega_tp1 = omega_l1 / i_tp1
     omega_tp2 = omega_l2 / i_tp2
     r = c[H.C_R]
+    f_er1, f_er2, slope1, slope2 = _nut_contact(x, th, c, t, p_np, x_np, u[1], u[2])
     sign_tp1, sign_tp2, cos1, cos2, f_tp1, f_tp2 = _shared_terms(
         omega_tp1, omega_tp2, theta / i_tp1, theta / i_tp2, eps, p_uj, p_st, th)
     omega_u1, m_er1, m_tser1, m_uer1 = _station(
-        omega_tp1, sign_tp1, cos1, f_tp1, u[1], th[H.P_B_TS1], th[H.P_C_TS1], th[H.P_B_U1], th[H.P_C_U1],
+        omega_tp1, sign_tp1, cos1, f_tp1, f_er1, th[H.P_B_TS1], th[H.P_C_TS1], th[H.P_B_U1], th[H.P_C_U1],
         c[H.D_R_SCG], c[H.D_INV_COS_B1], p_uj, p_st, p_ld, r, th)
     omega_u2, m_er2, m_tser2, m_uer2 = _station(
-        omega_tp2, sign_tp2, cos2, f_tp2, u[2], th[H.P_B_TS2], th[H.P_C_TS2], th[H.P_B_U2], th[H.P_C_U2],
+        omega_tp2, sign_tp2, cos2, f_tp2, f_er2, th[H.P_B_TS2], th[H.P_C_TS2], th[H.P_B_U2], th[H.P_C_U2],
         c[H.D_R_SCG], c[H.D_INV_COS_B2], p_uj, p_st, p_ld, r, th)
+    carriage1, carriage2 = _nut_play_rates(x, th, c, t, p_np, x_np, omega_u1, omega_u2, slope1, slope2, dx)
     brake = u[3]
     m_b21 = brake_torque(brake, omega_tp1, c[H.C_M_BMAX], c[H.C_K_B], c[H.C_OMEGA_HALF], eps)
     m_b22 = brake_torque(brake, omega_tp2, c[H.C_M_BMAX], c[H.C_K_B], c[H.C_OMEGA_HALF], eps)
@@ -248,20 +351,21 @@ def evaluate_htls_effects(x, u, th, c, dx, y):
     m_ripple = 0.0
     if p_tr >= 0:
         m_ripple = th[H.P_K_N] * th[p_tr] * math.sin(periods * theta_m + th[p_tr + 1])
+    if c[t + FX_HARMONICS] >= 0.0:
+        m_ripple = m_ripple + _harmonic_ripple(th, c, t, theta_m, th[H.P_K_N])
 
     lead = c[H.D_LEAD]
     net = m_n + m_ripple - (m_b1 + m_tper1 + m_tper2)
     dx[H.X_OMEGA] = net / th[H.P_J]
-    dx[H.X_Y1] = lead * omega_u1
-    dx[H.X_Y2] = lead * omega_u2
+    dx[H.X_Y1] = lead * carriage1
+    dx[H.X_Y2] = lead * carriage2
     dx[H.X_THETA] = omega
     if p_sc >= 0:
         load = m_tper1 + m_tper2
         j_load = load_fraction * th[H.P_J]
         j_motor = th[H.P_J] - j_load
         dx[x_sc] = q_rate
-        dx[x_sc + 1] = ((net + load) / j_motor + load / j_load
-                        - omega_n * omega_n * q - 2.0 * zeta * omega_n * q_rate)
+        dx[x_sc + 1] = _coupling_rate(net, load, j_motor, j_load, omega_n, zeta, q, q_rate, band, coupling_softness)
 
     y[0] = omega_m
     y[1] = x[H.X_Y1]
@@ -297,6 +401,8 @@ def evaluate_lths_effects(x, u, th, c, dx, y):
     relaxation, softness = c[t + FX_BACKLASH_RELAXATION], c[t + FX_BACKLASH_SOFTNESS]
     load_fraction, omega_max = c[t + FX_LOAD_FRACTION], c[t + FX_MODE_OMEGA_MAX]
     periods = c[t + FX_RIPPLE_PERIODS]
+    p_np = int(c[t + FX_NUT_PLAY])
+    x_np = int(c[t + FX_NUT_PLAY + 1])
 
     eps = c[L.C_OMEGA_EPS]
     i_mg = c[L.C_I_MG]
@@ -306,6 +412,15 @@ def evaluate_lths_effects(x, u, th, c, dx, y):
     i_a = x[L.X_I_A]
     omega = x[L.X_OMEGA]
     theta = x[L.X_THETA]
+    # one compliant coupling: shaft_compliance's spring, or backlash_compliant's beyond its band
+    band = -1.0
+    coupling_softness = 0.0
+    p_bc = int(c[t + FX_COUPLING])
+    if p_bc >= 0:
+        p_sc, x_sc = p_bc + 1, int(c[t + FX_COUPLING + 1])
+        load_fraction, omega_max = c[t + FX_COUPLING_LOAD_FRACTION], c[t + FX_COUPLING_OMEGA_MAX]
+        coupling_softness = c[t + FX_COUPLING_SOFTNESS]
+        band = th[p_bc] * i_mg * i_bg1
 
     # motor (+ magnetic gear) side and the first bevel gear's end of the input shaft
     omega_m = omega
@@ -334,14 +449,16 @@ def evaluate_lths_effects(x, u, th, c, dx, y):
     omega_tp2 = omega_mg2 / i_tp2
     r = c[L.C_R]
     theta_bg = theta / i_mg
+    f_er1, f_er2, slope1, slope2 = _nut_contact(x, th, c, t, p_np, x_np, u[1], u[2])
     sign_tp1, sign_tp2, cos1, cos2, f_tp1, f_tp2 = _shared_terms(
         omega_tp1, omega_tp2, theta_bg / i_bg1, theta_bg / i_bg2 / i_tp2, eps, p_uj, p_st, th)
     omega_u1, m_er1, m_tser1, m_uer1 = _station(
-        omega_tp1, sign_tp1, cos1, f_tp1, u[1], th[L.P_B_TS1], th[L.P_C_TS1], th[L.P_B_U1], th[L.P_C_U1],
+        omega_tp1, sign_tp1, cos1, f_tp1, f_er1, th[L.P_B_TS1], th[L.P_C_TS1], th[L.P_B_U1], th[L.P_C_U1],
         c[L.D_R_SCG], c[L.D_INV_COS_B1], p_uj, p_st, p_ld, r, th)
     omega_u2, m_er2, m_tser2, m_uer2 = _station(
-        omega_tp2, sign_tp2, cos2, f_tp2, u[2], th[L.P_B_TS2], th[L.P_C_TS2], th[L.P_B_U2], th[L.P_C_U2],
+        omega_tp2, sign_tp2, cos2, f_tp2, f_er2, th[L.P_B_TS2], th[L.P_C_TS2], th[L.P_B_U2], th[L.P_C_U2],
         c[L.D_R_SCG], c[L.D_INV_COS_B2], p_uj, p_st, p_ld, r, th)
+    carriage1, carriage2 = _nut_play_rates(x, th, c, t, p_np, x_np, omega_u1, omega_u2, slope1, slope2, dx)
     brake = u[3]
     m_b22 = brake_torque(brake, omega_tp2, c[L.C_M_BMAX], c[L.C_K_B], c[L.C_OMEGA_HALF], eps)
     m_b2 = brake_torque(brake, omega_tp1, c[L.C_M_BMAX], c[L.C_K_B], c[L.C_OMEGA_HALF], eps)
@@ -362,21 +479,22 @@ def evaluate_lths_effects(x, u, th, c, dx, y):
     m_ripple = 0.0
     if p_tr >= 0:
         m_ripple = th[L.P_K_N] * th[p_tr] * math.sin(periods * theta_m + th[p_tr + 1])
+    if c[t + FX_HARMONICS] >= 0.0:
+        m_ripple = m_ripple + _harmonic_ripple(th, c, t, theta_m, th[L.P_K_N])
 
     lead = c[L.D_LEAD]
     net = th[L.P_K_N] * i_a + m_ripple - m_mger
     dx[L.X_I_A] = (-th[L.P_R_A] * i_a - th[L.P_K_S] * omega_m + u_a) / th[L.P_L_A]
     dx[L.X_OMEGA] = net / th[L.P_J]
-    dx[L.X_Y1] = lead * omega_u1
-    dx[L.X_Y2] = lead * omega_u2
+    dx[L.X_Y1] = lead * carriage1
+    dx[L.X_Y2] = lead * carriage2
     dx[L.X_THETA] = omega
     if p_sc >= 0:
         load = m_iser / i_mg
         j_load = load_fraction * th[L.P_J]
         j_motor = th[L.P_J] - j_load
         dx[x_sc] = q_rate
-        dx[x_sc + 1] = ((net + load) / j_motor + load / j_load
-                        - omega_n * omega_n * q - 2.0 * zeta * omega_n * q_rate)
+        dx[x_sc + 1] = _coupling_rate(net, load, j_motor, j_load, omega_n, zeta, q, q_rate, band, coupling_softness)
 
     y[0] = omega_m
     y[1] = x[L.X_Y1]

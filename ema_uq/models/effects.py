@@ -54,6 +54,27 @@ carriage motion in both concepts; r tanγ converts them to carriage metres):
     command does not contain it), A as the equivalent armature current [A], n_p fixed per
     concept (HT/LS 6, LT/HS 4 periods per motor revolution), phase φ [rad].
 
+Further forms of these families (``Effect.family``; the gap diagnosis names the family):
+
+``backlash_compliant`` (family ``backlash``)
+    The play sits in a compliant coupling between motor (+ magnetic gear) and drive train, where
+    ``shaft_compliance`` puts its spring: the modal twist states, period T and damping ratio ζ of
+    ``shaft_compliance``, but spring and damper act on the twist beyond a dead band ±δ only
+    (δ referred to the screw, the band in motor radians δ i_TP (HT/LS) or δ i_MG i_BG1 (LT/HS)):
+    inside the band motor and drive train move freely, the load side held by its friction.
+    The band's corners are smoothed over 0.05 δ (spring force ½(a + √(a² + s²)) + ½(b - √(b² + s²))
+    with a = q - band, b = q + band; the damper weighted by its slope). Off at T = 0.
+``backlash_output`` (family ``backlash``)
+    Play of half width δ [screw rad] between each screw's nut and its carriage (the play operator
+    of ``backlash`` on the screw-to-carriage motion): after a reversal the screw turns while the
+    carriage (the measured position, on which the position loop closes) stands, and the load
+    force reaches the screw only at a flank. Two states, the nut travel inside each play.
+
+``torque_ripple_harmonics`` (family ``torque_ripple``)
+    The ripple of ``torque_ripple`` with its 2nd and 3rd harmonic, k_n A (sin(n_p θ + φ1)
+    + h2 sin(2 n_p θ + φ2) + h3 sin(3 n_p θ + φ3)); the harmonics as ratios h2, h3 to the
+    fundamental, so that A = 0 switches the whole ripple off.
+
 Nominal magnitudes (one value serves both concepts) are typical rig values chosen so that,
 with 2 % noise, each effect stays visible on deploy-retract at nominal and at half
 magnitude: the noise-normalised excess chi-square N Σ (NRMSE_ch / 0.02)² over the rig
@@ -225,7 +246,8 @@ def _p(name, unit, nominal, lower, upper, description) -> Parameter:
 
 TWO_PI = 2.0 * math.pi
 
-#: The seven effects of MODEL_SPEC.md for the EMA concepts (htls, lths), in kernel order.
+#: The seven effects of MODEL_SPEC.md for the EMA concepts (htls, lths), then further forms of
+#: their families, in kernel order.
 CATALOGUE: dict[str, Effect] = {e.name: e for e in (
     Effect(
         "backlash",
@@ -294,7 +316,66 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (
         off={"torque_ripple_amplitude": 0.0, "torque_ripple_phase": 0.0},
         signature=("periodic", "low_speed"), magnitude="torque_ripple_amplitude",
         constants={"htls": {"periods": 6.0}, "lths": {"periods": 4.0}}),  # ripple periods per motor revolution
+    # further forms of the families above (the diagnosis names the family)
+    Effect(
+        "backlash_compliant",
+        "dead band ±δ inside a compliant coupling between motor and drive train: spring and damper "
+        "act on the twist beyond the play only (two-inertia mode of period T, damping ratio ζ)",
+        (_p("backlash_compliant_delta", "rad", 0.1, 0.0, 1.0,
+            "half play of the coupling, referred to the screw shaft (carriage lost motion 2δ r tanγ)"),
+         _p("backlash_compliant_period", "s", 0.03, 0.0, 1.0,
+            "period 2π/ω_n of the torsional mode in contact (stiffness k = J_red ω_n², rigid at 0)"),
+         _p("backlash_compliant_zeta", "1", 0.1, 1e-3, 5.0, "damping ratio of the torsional mode in contact")),
+        # a play that carries the load shows only where the coupling's torque changes sign
+        # (the flap load keeps one flank in contact): visible plays are large, the start grid
+        # (x0.3 ... x10) spans 0.01-0.3 rad (0.01-0.3 mm of carriage). A 40 Hz start: drive-train
+        # modes of rigs sit at 20-60 Hz, and the grid's periods then span 13-130 Hz
+        start={"backlash_compliant_delta": 0.03, "backlash_compliant_period": 0.025, "backlash_compliant_zeta": 0.1},
+        off={"backlash_compliant_delta": 0.0, "backlash_compliant_period": 0.0, "backlash_compliant_zeta": 0.1},
+        signature=("reversal", "direction", "high_acceleration"), magnitude="backlash_compliant_period",
+        extra_states={"htls": ("coupling_twist", "coupling_twist_rate"),
+                      "lths": ("coupling_twist", "coupling_twist_rate")},
+        state_scales={"coupling_twist": 0.01, "coupling_twist_rate": 1.0},  # [rad], [rad/s]
+        # as shaft_compliance, and the dead band's corner softness [1]
+        constants={"htls": {"load_fraction": 0.5, "mode_omega_max": 1.0 / 5e-4, "softness": 0.05},
+                   "lths": {"load_fraction": 0.3, "mode_omega_max": 1.0 / 2e-4, "softness": 0.05}},
+        family="backlash"),
+    Effect(
+        "backlash_output",
+        "play of total 2δ between each screw's nut and its carriage: after a reversal the screw turns "
+        "while the measured carriage stands, and the load reaches the screw only at a flank",
+        (_p("backlash_output_delta", "rad", 0.02, 0.0, 1.0,
+            "half play between nut and carriage, in screw-shaft radians (carriage lost motion 2δ r tanγ)"),),
+        start={"backlash_output_delta": 0.002}, off={"backlash_output_delta": 0.0},
+        signature=("reversal", "direction", "low_speed"), magnitude="backlash_output_delta",
+        extra_states={"htls": ("nut_play_b1", "nut_play_b2"), "lths": ("nut_play_b1", "nut_play_b2")},
+        state_scales={"nut_play_b1": 0.1, "nut_play_b2": 0.1},  # travel inside the play [screw rad]
+        constants={"htls": {"relaxation": 2e-3, "softness": 0.05}, "lths": {"relaxation": 1e-3, "softness": 0.05}},
+        family="backlash"),
+    Effect(
+        "torque_ripple_harmonics",
+        "motor torque ripple with its 2nd and 3rd harmonic: k_n A (sin(n_p θ + φ1) + h2 sin(2 n_p θ + φ2) "
+        "+ h3 sin(3 n_p θ + φ3))",
+        (_p("torque_ripple_harmonics_amplitude", "A", 0.5, 0.0, 100.0,
+            "fundamental's amplitude as an equivalent armature current (torque k_n A)"),
+         _p("torque_ripple_harmonics_phase", "rad", 0.0, -TWO_PI, TWO_PI, "fundamental's phase at θ = 0"),
+         _p("torque_ripple_harmonics_ratio2", "1", 0.5, 0.0, 10.0, "2nd harmonic's amplitude over the fundamental's"),
+         _p("torque_ripple_harmonics_phase2", "rad", 0.0, -TWO_PI, TWO_PI, "2nd harmonic's phase at θ = 0"),
+         _p("torque_ripple_harmonics_ratio3", "1", 0.3, 0.0, 10.0, "3rd harmonic's amplitude over the fundamental's"),
+         _p("torque_ripple_harmonics_phase3", "rad", 0.0, -TWO_PI, TWO_PI, "3rd harmonic's phase at θ = 0")),
+        start={"torque_ripple_harmonics_amplitude": 0.05, "torque_ripple_harmonics_phase": 0.0,
+               "torque_ripple_harmonics_ratio2": 0.3, "torque_ripple_harmonics_phase2": 0.0,
+               "torque_ripple_harmonics_ratio3": 0.3, "torque_ripple_harmonics_phase3": 0.0},
+        off={"torque_ripple_harmonics_amplitude": 0.0, "torque_ripple_harmonics_phase": 0.0,
+             "torque_ripple_harmonics_ratio2": 0.0, "torque_ripple_harmonics_phase2": 0.0,
+             "torque_ripple_harmonics_ratio3": 0.0, "torque_ripple_harmonics_phase3": 0.0},
+        signature=("periodic", "low_speed"), magnitude="torque_ripple_harmonics_amplitude",
+        constants={"htls": {"periods": 6.0}, "lths": {"periods": 4.0}},  # fundamental periods per motor revolution
+        family="torque_ripple"),
 )}
+
+#: Effects that cannot share one model: both model the same coupling (its twist states).
+EXCLUSIVE: tuple[frozenset[str], ...] = (frozenset({"shaft_compliance", "backlash_compliant"}),)
 
 #: Kernel order of the catalogue effects (the layout table of the augmented kernels).
 EFFECT_ORDER: tuple[str, ...] = tuple(CATALOGUE)
@@ -370,6 +451,9 @@ def augment_ema(model: "Model", names: tuple[str, ...], values: dict[str, float]
     ``names`` are catalogue effects (checked by ``Model.with_effects``); ``values`` override
     effect nominal values (full names). The kernel reads the layout from the derived constants.
     """
+    for pair in EXCLUSIVE:
+        if pair <= set(names):
+            raise EffectError(f"effects {' and '.join(sorted(pair))} model the same coupling; switch in one of them")
     kernel_id = KERNEL_IDS.get(model.name, (None, None))[1]
     if kernel_id is None:
         raise EffectError(f"concept {model.name} has no compiled kernel with effects; give it one in "
@@ -428,5 +512,5 @@ class _DeriveWithLayout:
         return np.concatenate([self.base(c), np.asarray(self.tail, dtype=np.float64)])
 
 
-__all__ = ["CATALOGUE", "EFFECT_ORDER", "Effect", "EffectError", "LAYOUT", "LAYOUT_SIZE", "SIGNATURES", "augment_ema",
+__all__ = ["CATALOGUE", "EFFECT_ORDER", "EXCLUSIVE", "Effect", "EffectError", "LAYOUT", "LAYOUT_SIZE", "SIGNATURES", "augment_ema",
            "delay_outputs", "effect_parameters", "parse_effect"]

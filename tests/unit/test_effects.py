@@ -32,7 +32,12 @@ SPEC_EFFECTS = ("backlash", "stribeck", "shaft_compliance", "ujoint_kinematics",
 #: the parameter that sets each effect's magnitude (halved for the "half" case)
 MAGNITUDE = {"backlash": "backlash_delta", "stribeck": "stribeck_ratio", "shaft_compliance": "shaft_compliance_period",
              "ujoint_kinematics": "ujoint_kinematics_scale", "load_dependent_friction": "load_dependent_friction_mu",
-             "sensor_delay": "sensor_delay_tau", "torque_ripple": "torque_ripple_amplitude"}
+             "sensor_delay": "sensor_delay_tau", "torque_ripple": "torque_ripple_amplitude",
+             "backlash_compliant": "backlash_compliant_period", "backlash_output": "backlash_output_delta",
+             "torque_ripple_harmonics": "torque_ripple_harmonics_amplitude"}
+#: further forms of the spec effects' families (the catalogue after the seven), form -> family
+FAMILY_FORMS = {"backlash_compliant": "backlash", "backlash_output": "backlash",
+                "torque_ripple_harmonics": "torque_ripple"}
 NOISE = 0.02  # fraction of channel RMS, MODEL_SPEC "hypothetical data"
 
 
@@ -61,10 +66,13 @@ def column(concept, channel):
 
 # --- API ------------------------------------------------------------------------------------
 def test_catalogue_is_the_model_spec_table():
-    assert tuple(CATALOGUE) == SPEC_EFFECTS
+    """The seven MODEL_SPEC effects first, each its own family, then further forms of those
+    families (allowed beside the spec table: the diagnosis names the family)."""
+    assert tuple(CATALOGUE) == SPEC_EFFECTS + tuple(FAMILY_FORMS)
     for name, effect in CATALOGUE.items():
+        assert effect.family == FAMILY_FORMS.get(name, name) and effect.family in SPEC_EFFECTS
         assert isinstance(effect, Effect) and effect.name == name and effect.description
-        assert 1 <= len(effect.parameters) <= 2
+        assert 1 <= len(effect.parameters) <= (2 if name in SPEC_EFFECTS else 6)
         assert all(p.name.startswith(name + "_") and p.free for p in effect.parameters)
         assert set(effect.start) == set(effect.off) == set(effect.parameter_names)
         for p in effect.parameters:
@@ -75,7 +83,7 @@ def test_catalogue_is_the_model_spec_table():
         assert effect.off[magnitude] == 0.0 < effect.start[magnitude] < effect.nominal[magnitude]
         assert effect.signature and set(effect.signature) <= set(SIGNATURES)
     for concept in ("htls", "lths"):
-        assert get_model(concept).available_effects == SPEC_EFFECTS
+        assert get_model(concept).available_effects == tuple(CATALOGUE)
 
 
 @pytest.mark.parametrize("concept, extra_states", [
@@ -192,9 +200,12 @@ def test_effects_at_off_reproduce_nominal_bit_for_bit(concept, experiment, nomin
         aug = base.with_effects([name])
         np.testing.assert_array_equal(runs(aug, aug.parameters.vector(effect.off), experiment)[0],
                                       nominal_runs[concept], err_msg=name)
-    everything = base.with_effects(list(CATALOGUE))
-    off = everything.parameters.vector({k: v for e in CATALOGUE.values() for k, v in e.off.items()})
-    np.testing.assert_array_equal(runs(everything, off, experiment)[0], nominal_runs[concept])
+    # every effect at once (of the exclusive pairs, one and then the other)
+    for left_out in ("backlash_compliant", "shaft_compliance"):
+        everything = base.with_effects([n for n in CATALOGUE if n != left_out])
+        off = everything.parameters.vector({k: v for n, e in CATALOGUE.items() if n != left_out
+                                            for k, v in e.off.items()})
+        np.testing.assert_array_equal(runs(everything, off, experiment)[0], nominal_runs[concept], err_msg=left_out)
 
 
 @njit(cache=True)
@@ -570,3 +581,71 @@ def test_gap_json_carries_the_family_beside_the_form():
     rows = [c.to_json() for c in r.ranking]
     assert [row["family"] for row in rows] == ["play", "other"]
     assert GapResult(verdict="none", effect=None, **common).family is None
+
+
+# --- further forms of the backlash family -----------------------------------------------------
+@pytest.mark.parametrize("concept", ["htls", "lths"])
+def test_compliant_backlash_without_play_is_the_shaft_compliance(concept, experiment):
+    base = get_model(concept)
+    plain = base.with_effects(["shaft_compliance"], {"shaft_compliance_period": 0.025, "shaft_compliance_zeta": 0.1})
+    played = base.with_effects(["backlash_compliant"], {"backlash_compliant_delta": 0.0,
+                                                        "backlash_compliant_period": 0.025})
+    np.testing.assert_array_equal(runs(played, played.parameters.nominal, experiment),
+                                  runs(plain, plain.parameters.nominal, experiment))
+    with pytest.raises(EffectError, match="same coupling"):
+        base.with_effects(["shaft_compliance", "backlash_compliant"])
+
+
+@pytest.mark.parametrize("concept", ["htls", "lths"])
+def test_compliant_backlash_loses_the_play_at_a_reversal(concept, experiment, nominal_runs):
+    """A force-transmitting play is crossed when the coupling's torque changes sign: without
+    the (one-signed) flap load, at the motion reversal where the friction turns."""
+    base = get_model(concept)
+    delta = 0.02
+    aug = base.with_effects(["backlash_compliant"], {"backlash_compliant_delta": delta})
+    stiff = base.with_effects(["backlash_compliant"], {"backlash_compliant_delta": 0.0})
+    unloaded = experiment.input_matrix(base).copy()
+    unloaded[:, 1:3] = 0.0
+    out, ref = (simulate_batch(m, m.parameters.nominal, experiment.time, unloaded) for m in (aug, stiff))
+    t = experiment.time
+    after = (t > 24.0) & (t < 24.5)
+    lag = out[:, column(concept, "y1")] - ref[:, column(concept, "y1")]
+    lost_motion = 2 * delta * LEAD
+    assert 0.8 * lost_motion <= lag[after].max() <= 2.5 * lost_motion
+    assert np.abs(lag[(t > 20.0) & (t < 24.0)]).max() < 0.1 * lost_motion
+
+
+@pytest.mark.parametrize("concept", ["htls", "lths"])
+def test_output_backlash_screw_turns_while_the_carriage_stands(concept, experiment, nominal_runs):
+    base = get_model(concept)
+    delta = 0.02
+    aug = base.with_effects(["backlash_output"], {"backlash_output_delta": delta})
+    out = runs(aug, aug.parameters.nominal, experiment)[0]
+    nom = nominal_runs[concept]
+    t = experiment.time
+    after = (t > 24.0) & (t < 24.5)
+    lag = out[:, column(concept, "y1")] - nom[:, column(concept, "y1")]
+    lost_motion = 2 * delta * LEAD
+    assert 0.95 * lost_motion <= lag[after].max() <= 2.5 * lost_motion
+    assert np.abs(lag[(t > 20.0) & (t < 24.0)]).max() < 0.05 * lost_motion
+    # unlike the gear play, the screw keeps turning while the carriage stands, and the load
+    # force does not reach it meanwhile
+    screw = out[:, column(concept, "Omega_TP1")]
+    carriage_still = after & (np.abs(np.gradient(out[:, column(concept, "y1")], t)) < 0.02 * LEAD)
+    crossing = carriage_still & (np.abs(screw) > 0.3)
+    assert crossing.sum() >= 2
+    m_er = out[:, column(concept, "M_ER1")]
+    assert np.abs(m_er[crossing]).max() < 0.05 * np.abs(m_er[after & ~crossing]).max()
+
+
+def test_ripple_harmonics_reduce_to_the_single_ripple_and_add_its_harmonics(experiment):
+    base = get_model("lths")
+    one = base.with_effects(["torque_ripple"], {"torque_ripple_amplitude": 0.5, "torque_ripple_phase": 0.3})
+    three = base.with_effects(["torque_ripple_harmonics"], {
+        "torque_ripple_harmonics_amplitude": 0.5, "torque_ripple_harmonics_phase": 0.3,
+        "torque_ripple_harmonics_ratio2": 0.0, "torque_ripple_harmonics_ratio3": 0.0})
+    single = runs(one, one.parameters.nominal, experiment)[0]
+    np.testing.assert_allclose(runs(three, three.parameters.nominal, experiment)[0], single, rtol=1e-9, atol=1e-9)
+    harmonics = runs(three, three.parameters.vector({"torque_ripple_harmonics_amplitude": 0.5,
+                                                     "torque_ripple_harmonics_ratio2": 1.0}), experiment)[0]
+    assert not np.allclose(harmonics, single, rtol=1e-3)
