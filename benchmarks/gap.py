@@ -60,7 +60,7 @@ def circular_peer(concept: str, seed: int) -> dict:
         t0 = time.perf_counter()
         result = diagnose([estimation], held, seed=seed + 1000 + i)
         found = family_of(result, concept)
-        truth = "none" if effect is None else get_model(concept).effect_catalogue[effect].__dict__.get("family", effect)
+        truth = "none" if effect is None else getattr(get_model(concept).effect_catalogue[effect], "family", None)
         label = found if result.verdict == "effect" else result.verdict
         rows.append({"truth": truth or effect, "label": label, "seconds": time.perf_counter() - t0})
         print(f"    peer {concept}/{effect}: {label} ({time.perf_counter() - t0:.0f} s)", flush=True)
