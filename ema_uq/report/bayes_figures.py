@@ -124,3 +124,33 @@ def predictive_bands(result, channels: Sequence[str] | None = None, experiment: 
     axes[-1, 0].set_xlabel(f"time [s] ({experiment})", fontsize=8)
     fig.tight_layout()
     return fig
+
+
+def sbc_rank_histogram(sbc, band: float = 0.99):
+    """Rank histograms of a simulation-based calibration (:class:`~ema_uq.bayes.sbc.SbcResult`),
+    one panel per parameter: counts per bin, the expected count R / B and the central ``band``
+    of a bin's Binomial(R, 1 / B) count under calibration (grey), χ² p-value in the title."""
+    from scipy import stats
+
+    counts = sbc.counts()                                  # (n_free, n_bins)
+    n_params, n_bins = counts.shape
+    lo, hi = stats.binom.interval(band, sbc.n_replicates, 1.0 / n_bins)
+    edges = np.linspace(0, sbc.n_draws + 1, n_bins + 1)
+    n_cols = min(n_params, 4)
+    n_rows = -(-n_params // n_cols)
+    fig, axes = plt.subplots(n_rows, n_cols, figsize=(2.8 * n_cols, 2.3 * n_rows + 0.4), squeeze=False)
+    uniformity = sbc.uniformity()
+    for ax, name, row in zip(axes.flat, sbc.names, counts):
+        p = uniformity[name][1]
+        ax.axhspan(lo, hi, color="0.85", lw=0, label=f"{band:.0%} band")
+        ax.axhline(sbc.n_replicates / n_bins, color="0.4", lw=0.8, ls="--", label="expected")
+        ax.bar(edges[:-1], row, width=np.diff(edges), align="edge", color="tab:blue", alpha=0.7, edgecolor="white")
+        ax.set_title(f"{name}: χ² p = {p:.3f}", fontsize=8)
+        ax.set_xlabel(f"rank of the truth among {sbc.n_draws} draws", fontsize=7)
+        ax.tick_params(labelsize=7)
+    for ax in list(axes.flat)[n_params:]:
+        ax.set_visible(False)
+    axes[0, 0].set_ylabel(f"replicates (of {sbc.n_replicates})", fontsize=7)
+    axes[0, 0].legend(fontsize=6, loc="lower right")
+    fig.tight_layout()
+    return fig
