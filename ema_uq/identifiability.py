@@ -519,7 +519,10 @@ def combinations(info: Information, theta_hat: Mapping[str, float], model: Model
     the group: then the members are lumped in practice rather than by structure).
     Structure side: the motor-shaft factors ``model.loss_factors``. When the group has
     one combination and both agree within ``agreement`` (relative), the structural expression
-    is reported; otherwise the data-derived coefficients. ``std`` is its Cramér-Rao σ.
+    is reported; a group with several combinations (a weak direction joined the viscous and
+    the Coulomb losses) reports the structural sum of each kind when each lies in the data's
+    directions within ``agreement``; otherwise the data-derived coefficients. ``std`` is its
+    Cramér-Rao σ.
     """
     factors = model.loss_factors(constants)
     proj = info.weak_projector
@@ -530,37 +533,83 @@ def combinations(info: Information, theta_hat: Mapping[str, float], model: Model
         q = np.eye(len(idx)) - proj[np.ix_(idx, idx)]
         w, v = np.linalg.eigh(0.5 * (q + q.T))
         directions = v[:, w > 0.5]
+        weak = float(np.trace(proj[np.ix_(idx, idx)]) - np.trace(exact[np.ix_(idx, idx)])) > 0.5
+        structural = np.array([factors.get(n, np.nan) for n in group])
+        parts = _structural_kinds(group, info.scale[idx], directions, structural, agreement)
+        if parts is not None:
+            for members, deviation in parts:
+                sub = [n for n, m in zip(group, members) if m]
+                out.append(_structural_entry(info, sub, structural[members], theta_hat, model, constants,
+                                             {"parameters": list(sub), "weak": weak,
+                                              "structural_deviation": deviation}))
+            continue
         for k in range(directions.shape[1]):
             coef = directions[:, k] / info.scale[idx]          # relative -> parameter units
-            weak = float(np.trace(proj[np.ix_(idx, idx)]) - np.trace(exact[np.ix_(idx, idx)]))
-            entry: dict[str, Any] = {"parameters": list(group), "weak": weak > 0.5}
-            structural = np.array([factors.get(n, np.nan) for n in group])
+            entry: dict[str, Any] = {"parameters": list(group), "weak": weak}
             use_structure = directions.shape[1] == 1 and np.all(np.isfinite(structural))
             if use_structure:
-                ref = next((j for j, n in enumerate(group) if n[2:] in ("U1",)), int(np.argmin(np.abs(structural))))
+                ref = _reference_member(group, structural)
                 f_norm = structural / structural[ref]
                 alpha = float(coef @ f_norm / (f_norm @ f_norm))
                 deviation = float(np.max(np.abs(coef / alpha - f_norm)) / np.max(np.abs(f_norm)))
                 entry["structural_deviation"] = deviation
                 use_structure = deviation < agreement
             if use_structure:
-                a = f_norm
-                entry.update(expression=combination_expression(group, a, model, constants), structural=True,
-                             motor_shaft_factor=float(structural[ref]),
-                             meaning="equivalent loss at the reference member's shaft; x motor_shaft_factor "
-                                     "gives it at the motor shaft")
-            else:
-                a = coef / coef[int(np.argmax(np.abs(coef)))]
-                entry.update(expression=" + ".join(f"{x:.4g}*{n}" for n, x in zip(group, a)).replace("+ -", "- "),
-                             structural=False)
-            full = np.zeros(len(info.names))
-            full[idx] = a
-            value = float(sum(a[j] * theta_hat[n] for j, n in enumerate(group)))
-            std = info.combination_std(full)
-            entry.update(coefficients={n: float(x) for n, x in zip(group, a)}, value=value, std=std,
-                         relative_std=std / abs(value) if value else float("nan"))
-            out.append(entry)
+                out.append(_structural_entry(info, group, structural, theta_hat, model, constants, entry))
+                continue
+            a = coef / coef[int(np.argmax(np.abs(coef)))]
+            entry.update(expression=" + ".join(f"{x:.4g}*{n}" for n, x in zip(group, a)).replace("+ -", "- "),
+                         structural=False)
+            out.append(_with_value(info, group, a, theta_hat, entry))
     return out
+
+
+def _reference_member(group: Sequence[str], structural: np.ndarray) -> int:
+    """The member whose factor scales a structural combination to 1 (the U-joint of station 1)."""
+    return next((j for j, n in enumerate(group) if n[2:] in ("U1",)), int(np.argmin(np.abs(structural))))
+
+
+def _structural_kinds(group: Sequence[str], scale: np.ndarray, directions: np.ndarray, structural: np.ndarray,
+                      agreement: float) -> list[tuple[np.ndarray, float]] | None:
+    """(members mask, deviation) of the viscous and the Coulomb sums of a group with several
+    identifiable directions, when each sum (coefficients in relative coordinates) lies in their
+    span within ``agreement``; None otherwise."""
+    if directions.shape[1] < 2 or not np.all(np.isfinite(structural)):
+        return None
+    kinds = [np.array([n.startswith(kind) for n in group]) for kind in ("B_", "C_")]
+    kinds = [m for m in kinds if m.any()]
+    if len(kinds) != directions.shape[1] or not np.all(np.logical_or.reduce(kinds)):
+        return None
+    parts = []
+    for members in kinds:
+        c = np.where(members, structural * scale, 0.0)
+        deviation = float(np.linalg.norm(c - directions @ (directions.T @ c)) / np.linalg.norm(c))
+        if deviation >= agreement:
+            return None
+        parts.append((members, deviation))
+    return parts
+
+
+def _structural_entry(info: Information, group: Sequence[str], structural: np.ndarray, theta_hat, model, constants,
+                      entry: dict[str, Any]) -> dict[str, Any]:
+    ref = _reference_member(group, structural)
+    a = structural / structural[ref]
+    entry.update(expression=combination_expression(group, a, model, constants), structural=True,
+                 motor_shaft_factor=float(structural[ref]),
+                 meaning="equivalent loss at the reference member's shaft; x motor_shaft_factor "
+                         "gives it at the motor shaft")
+    return _with_value(info, group, a, theta_hat, entry)
+
+
+def _with_value(info: Information, group: Sequence[str], a: np.ndarray, theta_hat, entry: dict[str, Any]):
+    """``entry`` with the coefficients, value and Cramér-Rao σ of Σ a_j θ_j over ``group``."""
+    full = np.zeros(len(info.names))
+    full[[info.names.index(n) for n in group]] = a
+    value = float(sum(a[j] * theta_hat[n] for j, n in enumerate(group)))
+    std = info.combination_std(full)
+    entry.update(coefficients={n: float(x) for n, x in zip(group, a)}, value=value, std=std,
+                 relative_std=std / abs(value) if value else float("nan"))
+    return entry
 
 
 # --------------------------------------------------------------------------------------

@@ -144,3 +144,20 @@ def test_identifiability_at_a_parameter_file_without_data(tmp_path, capsys):
     assert "missing.json" in capsys.readouterr().err
     assert cli.main(["identifiability", "--concept", "htls", "--at", "nominal", "--out", str(out)]) == 2
     assert "--at needs the experiment" in capsys.readouterr().err
+
+
+def test_lths_rig_fit_reports_the_structural_sums():
+    """LT/HS: a weak direction (C_MG against the station Coulomb losses) joins the viscous and
+    Coulomb losses in one lumped group; the combinations are still each kind's motor-shaft sum."""
+    model = get_model("lths")
+    record = synthesize("lths", deploy_retract(), noise=0.02, seed=1, channels=("Omega", "y1", "y2", "I_A", "U_A"))
+    fit = estimate(FitProblem([record], parameters=model.parameters),
+                   start=perturbed_start(model.parameters, 0.3, 1), unidentifiable="fix")
+    assert fit.converged and len(fit.fixed) == 12 and {"B_MG", "C_MG"} < set(fit.free_names)
+    truth = dict(zip(model.parameters.names, model.parameters.nominal))
+    assert sorted(c["expression"] for c in fit.combinations) == [
+        "B_TS1/cos(beta1) + B_U1 + 2*B_TP1 + B_TS2/cos(beta2) + B_U2 + 2*B_TP2 + 80*B_MG",
+        "C_TS1/cos(beta1) + C_U1 + 2*C_TP1 + C_TS2/cos(beta2) + C_U2 + 2*C_TP2 + 40*C_MG"]
+    for c in fit.combinations:
+        exact = sum(a * truth[n] for n, a in c["coefficients"].items())
+        assert c["structural"] and abs(c["value"] - exact) < 3 * c["std"], (c["expression"], c["value"], exact)
