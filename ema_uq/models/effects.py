@@ -332,7 +332,9 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (
         # modes of rigs sit at 20-60 Hz, and the grid's periods then span 13-130 Hz
         start={"backlash_compliant_delta": 0.03, "backlash_compliant_period": 0.025, "backlash_compliant_zeta": 0.1},
         off={"backlash_compliant_delta": 0.0, "backlash_compliant_period": 0.0, "backlash_compliant_zeta": 0.1},
-        signature=("reversal", "direction", "high_acceleration"), magnitude="backlash_compliant_period",
+        # the play shows at reversals, the coupling rings under acceleration (as shaft_compliance,
+        # which it contains at δ = 0: its signature match must not favour the form with play)
+        signature=("high_acceleration", "reversal", "periodic"), magnitude="backlash_compliant_period",
         extra_states={"htls": ("coupling_twist", "coupling_twist_rate"),
                       "lths": ("coupling_twist", "coupling_twist_rate")},
         state_scales={"coupling_twist": 0.01, "coupling_twist_rate": 1.0},  # [rad], [rad/s]
@@ -346,7 +348,9 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (
         "while the measured carriage stands, and the load reaches the screw only at a flank",
         (_p("backlash_output_delta", "rad", 0.02, 0.0, 1.0,
             "half play between nut and carriage, in screw-shaft radians (carriage lost motion 2δ r tanγ)"),),
-        start={"backlash_output_delta": 0.002}, off={"backlash_output_delta": 0.0},
+        # plays between nut and carriage are tens of µm (0.01 rad = 11 µm): the start grid
+        # (x0.3 ... x10) spans 0.003-0.1 rad
+        start={"backlash_output_delta": 0.01}, off={"backlash_output_delta": 0.0},
         signature=("reversal", "direction", "low_speed"), magnitude="backlash_output_delta",
         extra_states={"htls": ("nut_play_b1", "nut_play_b2"), "lths": ("nut_play_b1", "nut_play_b2")},
         state_scales={"nut_play_b1": 0.1, "nut_play_b2": 0.1},  # travel inside the play [screw rad]
