@@ -481,11 +481,12 @@ def test_shaft_mode_matches_an_independent_two_inertia_model(concept):
 
 @pytest.mark.parametrize("concept", ["htls", "lths"])
 def test_batched_equals_single(concept, experiment):
-    aug = get_model(concept).with_effects(list(CATALOGUE))
+    names = [n for n in CATALOGUE if n != "backlash_compliant"]  # it and shaft_compliance are one coupling
+    aug = get_model(concept).with_effects(names)
     nominal = aug.parameters.nominal
     thetas = np.stack([nominal, aug.parameters.vector({"backlash_delta": 0.01, "sensor_delay_tau": 0.013,
                                                        "shaft_compliance_period": 0.02}),
-                       aug.parameters.vector({k: v for e in CATALOGUE.values() for k, v in e.start.items()})])
+                       aug.parameters.vector({k: v for n in names for k, v in CATALOGUE[n].start.items()})])
     short = experiment.slice(0, 1500)  # through the first ramp and hold
     batch = simulate_batch(aug, thetas, short.time, short.input_matrix(aug))
     assert np.all(np.isfinite(batch))
