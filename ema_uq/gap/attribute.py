@@ -53,7 +53,8 @@ Procedure (``diagnose``):
 
 5. Forward selection (``DiagnosisSettings.max_effects`` rounds, default 1): when a round's
    best candidate passes the ``effect`` test below, it joins the model, and the remaining
-   candidates are added to that model and scored against it in the next round.
+   candidates (less the other forms of its family) are added to that model and scored
+   against it in the next round.
 6. Verdict:
    ``effect`` when the best candidate has ΔBIC > ``BIC_MIN``, G > ``HELD_OUT_GAIN_MIN`` and,
    if the nominal model's gap on the selection part is significant (see below), a selection
