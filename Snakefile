@@ -13,7 +13,7 @@ from importlib import resources
 
 from snakemake.utils import validate
 
-from ema_uq.io import emps_files
+from ema_uq.io import CRANFIELD_FILES, cranfield_file, emps_files
 from ema_uq.study import DATA_ROLES, load_study, settings_for
 
 configfile: "config/config.yaml"
@@ -26,6 +26,11 @@ def _load(name):
     study = load_study(f"studies/{name}.yaml")
     if study["concept"] == "emps" and not all(p.is_file() for p in emps_files(study, must_exist=False).values()):
         print(f"study {name}: EMPS data files not found (data.path or EMA_UQ_EMPS_DIR); study skipped",
+              file=sys.stderr)
+        return None
+    if study["concept"] == "cranfield" and not all(cranfield_file(f, study, must_exist=False).is_file()
+                                                   for f in CRANFIELD_FILES):
+        print(f"study {name}: Cranfield record sets not found (data.path or EMA_UQ_CRANFIELD_DIR); study skipped",
               file=sys.stderr)
         return None
     return study
@@ -70,6 +75,8 @@ def has_stage(s, stage):
 
 def stage_outputs(w):
     s = study(w)
+    if s["concept"] == "cranfield":  # measured fault records: healthy fit and fault diagnosis in one stage
+        return {"faults": f"results/{w.study}/faults.json"}
     out = {"fits": expand("results/{study}/fit_{method}.json", study=w.study, method=s["identify"]["methods"]),
            "posterior": f"results/{w.study}/posterior.nc", "gap": f"results/{w.study}/gap.json"}
     if has_stage(s, "sensitivity"):
@@ -265,6 +272,26 @@ rule gap_selfcheck:
         runtime=120,
     shell:
         "ema-uq gap-selfcheck --study {params.study_file} --jobs {threads} --out {output} > {log} 2>&1"
+
+
+rule fault_diagnosis:
+    input:
+        lambda w: [str(cranfield_file(f, study(w))) for f in CRANFIELD_FILES],
+    output:
+        "results/{study}/faults.json",
+    params:
+        study_file=study_file,
+        # the stage reads the study's data section and seed itself
+        settings=lambda w: json.dumps({k: study(w).get(k) for k in ("data", "seed")}, sort_keys=True),
+    log:
+        "results/{study}/logs/fault_diagnosis.log",
+    benchmark:
+        "results/{study}/benchmarks/fault_diagnosis.tsv"
+    resources:
+        mem_mb=2000,
+        runtime=15,
+    shell:
+        "ema-uq fault-diagnosis --study {params.study_file} --out {output} > {log} 2>&1"
 
 
 rule report:

@@ -779,6 +779,51 @@ def _run_gap_selfcheck(args: argparse.Namespace) -> str:
             f"median honest shrink {result.shrink['median']:.2f}, {result.wall_time_s:.0f} s")
 
 
+def _add_fault_diagnosis(subparsers) -> None:
+    p = subparsers.add_parser(
+        "fault-diagnosis", help="fit a real rig on its healthy records and diagnose its faulted record sets",
+        description="Study of measured seeded-fault records (concept cranfield): the rig model is fitted on "
+                    "healthy runs, then every record set is diagnosed by the gap diagnosis against that fit "
+                    "(base parameters held, only effect parameters fitted; shrink scored on runs not used to "
+                    "select the effect). Data folder: the study's data.path or EMA_UQ_CRANFIELD_DIR.")
+    _add_study(p, "the data folder, channels and seed", required=True)
+    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    p.add_argument("--out", required=True, metavar="FAULTS.json")
+    p.set_defaults(handler=_run_fault_diagnosis)
+
+
+def _run_fault_diagnosis(args: argparse.Namespace) -> str:
+    from . import io
+    from .cranfield import CHANNELS, run_study
+    from .provenance import provenance
+    from .study import load_study
+
+    study = load_study(args.study)
+    if study["concept"] != "cranfield":
+        raise CLIError(f"{args.study} is a study of concept {study['concept']}; fault-diagnosis needs a "
+                       "study of concept cranfield")
+    channels = tuple(study["data"].get("channels") or CHANNELS)
+    if channels != CHANNELS:
+        raise CLIError(f"{args.study}: the fault diagnosis fits the channels {', '.join(CHANNELS)}; "
+                       "drop data.channels or give exactly those")
+    io.prepare_output(args.out)
+
+    def read(name: str, runs):
+        return io.read_cranfield(io.cranfield_file(name, study), runs=runs, channels=CHANNELS)
+
+    def progress(line: str) -> None:
+        print(f"{PROG} fault-diagnosis: {line}", file=sys.stderr, flush=True)
+
+    result = run_study(read, seed=int(study.get("seed", 0)), progress=None if args.quiet else progress)
+    payload = result.to_json()
+    payload["provenance"] = provenance(seed=int(study.get("seed", 0)), settings={"study": args.study})
+    io.write_json(args.out, payload)
+    matches = sum(result.verdict_of(d.record_set) == result.expected.get(d.record_set) for d in result.diagnoses)
+    verdicts = ", ".join(f"{d.record_set} {result.verdict_of(d.record_set)}" for d in result.diagnoses)
+    return (f"wrote {args.out}: {matches} of {len(result.diagnoses)} record sets as expected ({verdicts}), "
+            f"{result.wall_time_s:.0f} s")
+
+
 def _add_report(subparsers) -> None:
     p = subparsers.add_parser("report", help="write the self-contained HTML report of a study",
                               description="Collect a study's result files into one HTML report with embedded figures.")
@@ -846,7 +891,7 @@ def _run_screenshot(args: argparse.Namespace) -> str:
 # --------------------------------------------------------------------------------------
 #: Register functions, one per verb, in the order ``--help`` lists them.
 VERBS: tuple[Callable, ...] = (_add_simulate, _add_identify, _add_sample, _add_sensitivity,
-                               _add_identifiability, _add_gap, _add_gap_selfcheck, _add_report, _add_check_study,
+                               _add_identifiability, _add_gap, _add_gap_selfcheck, _add_fault_diagnosis, _add_report, _add_check_study,
                                _add_screenshot)
 
 

@@ -272,6 +272,21 @@ def _png_file(path: Path, alt: str) -> str:
     return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{base64.b64encode(path.read_bytes()).decode()}">'
 
 
+def _effect_name(gap: dict) -> str:
+    """"family (form)" when the winning form is not the family's own effect, else the effect."""
+    effect, family = str(gap.get("effect")), gap.get("family")
+    return f"{family} ({effect})" if family and family != effect else effect
+
+
+def _honest_shrink(summary: dict) -> str:
+    """The shrink of an ``effect`` verdict, scored on held-out data not used to choose the effect."""
+    if summary.get("shrink") is None:
+        return "No shrink is reported: the verdict names no effect."
+    return (f"Shrink {_fmt(summary['shrink'], 3)} ± {_fmt(summary.get('shrink_se'), 2)} (signed, block-bootstrap "
+            f"standard error), scored on {html.escape(str(summary.get('shrink_record', 'held-out data')))}, "
+            "which did not take part in choosing the effect.")
+
+
 def _gap_section(study: dict, results: Path) -> str:
     """The gap ledger: verdict, where the nominal model departs, each candidate's refit scores,
     the winner's parameters and the before/after figure."""
@@ -280,7 +295,7 @@ def _gap_section(study: dict, results: Path) -> str:
         return '<p class="muted">Gap diagnosis not run.</p>'
     gap = io.read_json(path)
     hidden = study.get("gap", {}).get("rig_effects") or []
-    verdict = html.escape(str(gap["verdict"])) + (f": <b>{html.escape(str(gap['effect']))}</b>" if gap.get("effect") else "")
+    verdict = html.escape(str(gap["verdict"])) + (f": <b>{html.escape(_effect_name(gap))}</b>" if gap.get("effect") else "")
     parts = [f"<p>Verdict <b>{verdict}</b>"
              + (f" (confidence {html.escape(str(gap['confidence']))})" if gap.get("confidence") else "") + ". "
              + f"The gap lies in channels {html.escape(', '.join(gap['where'].get('channels', [])) or '–')} and "
@@ -295,13 +310,16 @@ def _gap_section(study: dict, results: Path) -> str:
         after = summary.get("after", summary.get("gap_after"))
         metric = summary.get("metric", "held-out systematic NRMSE")
         parts.append(f"<p>Gap metric ({html.escape(str(metric))}): {_fmt(before, 4)} before, {_fmt(after, 4)} after "
-                     f"the winning effect; shrink {_fmt(summary.get('shrink'), 3)}.</p>")
+                     f"the best candidate on all held-out data. {_honest_shrink(summary)}</p>")
     extra = [k for k in ("delta_bic", "likelihood_ratio", "held_out_gain", "signature_match") if gap["ranking"]
              and k in gap["ranking"][0]]
-    rows = [[html.escape(str(c["effect"])), _fmt(c["score"], 4), _fmt(c["gap_before"], 4), _fmt(c["gap_after"], 4),
-             _fmt(c["shrink"], 3)] + [_fmt(c.get(k), 4) for k in extra] for c in gap["ranking"]]
-    parts += ["<h3>Candidates (best first)</h3>",
-              _table(["effect", "score", "gap before", "gap after", "shrink"] + [k.replace("_", " ") for k in extra], rows)]
+    rows = [[html.escape(str(c["effect"])), html.escape(str(c.get("family", c["effect"]))), _fmt(c["score"], 4),
+             _fmt(c["gap_before"], 4), _fmt(c["gap_after"], 4),
+             f"{_fmt(c['shrink'], 3)} ± {_fmt(c.get('shrink_se'), 2)}"] + [_fmt(c.get(k), 4) for k in extra]
+            for c in gap["ranking"]]
+    parts += ["<h3>Candidates (best first; gap and shrink on the scoring part of the held-out data)</h3>",
+              _table(["effect", "family", "score", "gap before", "gap after", "shrink ± se"]
+                     + [k.replace("_", " ") for k in extra], rows, name_cols=2)]
     params = gap.get("effect_parameters") or {}
     if params:
         prow = [[html.escape(k), f"{_fmt(v.get('estimate'), 5)} ± {_fmt(v.get('std'), 3)}",
@@ -400,12 +418,19 @@ def _summary_section(study: dict, results: Path, fits: dict) -> str:
     items = []
     gap = _read(results, "gap.json")
     if gap:
-        what = {"effect": f"effect <b>{html.escape(str(gap.get('effect')))}</b>", "none": "no significant gap",
+        what = {"effect": f"effect <b>{html.escape(_effect_name(gap))}</b>", "none": "no significant gap",
                 "unexplained": "unexplained gap"}.get(gap["verdict"], html.escape(str(gap["verdict"])))
         conf = f", {html.escape(str(gap['confidence']))} confidence" if gap.get("confidence") else ""
         params = "; ".join(f"{html.escape(n)} = {_fmt(v.get('estimate'), 4)} ± {_fmt(v.get('std'), 2)} "
                            f"{html.escape(str(v.get('unit', '')))}" for n, v in (gap.get("effect_parameters") or {}).items())
         items.append(f"Sim-to-real gap: {what}{conf}" + (f" ({params})" if params else "") + ".")
+    faults = _read(results, "faults.json")
+    if faults:
+        rows = faults["diagnoses"]
+        right = sum(_fault_label(r) == faults["expected"].get(r["record_set"]) for r in rows)
+        items.append(f"Fault diagnosis of measured records against the healthy fit: {right} of {len(rows)} record "
+                     "sets as expected (" + ", ".join(f"{html.escape(r['record_set'])} → "
+                                                      f"{html.escape(_fault_label(r))}" for r in rows) + ").")
     ident = _read(results, "ident.json")
     if ident:
         from ..identifiability import VERDICTS
@@ -458,6 +483,39 @@ def _emps_section(study: dict, results: Path) -> str:
             + f"<h3>Why the estimates differ</h3><ul>{notes}</ul>")
 
 
+def _fault_label(row: dict) -> str:
+    return str(row["effect"] if row["verdict"] == "effect" else row["verdict"])
+
+
+def _faults_section(results: Path) -> str:
+    """Measured seeded-fault records (``ema-uq fault-diagnosis``): the healthy fit, then every
+    record set's verdict against it, the expected verdict, shrink ± se and the effect's parameters."""
+    faults = _read(results, "faults.json")
+    if not faults:
+        return '<p class="muted">Fault diagnosis not run.</p>'
+    ref = faults["reference"]
+    nrmse = ", ".join(f"{html.escape(c)} {_fmt(v, 3)}" for c, v in (ref.get("nrmse_held_out") or {}).items())
+    parts = [f"<p>Rig model fitted on the healthy runs; NRMSE on held-out healthy runs: {nrmse}. Each record set "
+             "is diagnosed against that fit: the base parameters are held, only the candidate effect's parameters "
+             "are fitted (on the record set's estimation runs, thinned by a stride of "
+             f"{html.escape(str(ref.get('thinning_stride', ref.get('stride', '?'))))} samples, the residual's "
+             "correlation time), and the shrink is scored on a held-out block not used to choose the effect.</p>"]
+    rows = []
+    for r in faults["diagnoses"]:
+        label, expected = _fault_label(r), faults["expected"].get(r["record_set"], "?")
+        mark = "" if label == expected else ' <span class="flag">≠ expected</span>'
+        shrink = "–" if r.get("shrink") is None else f"{_fmt(r['shrink'], 3)} ± {_fmt(r.get('shrink_se'), 2)}"
+        params = "; ".join(f"{html.escape(n)} = {_fmt(p.get('estimate'), 4)} ± {_fmt(p.get('std'), 2)} "
+                           f"{html.escape(str(p.get('unit', '')))}" for n, p in
+                           ((r.get("effect_parameters") or {}).items() if r["verdict"] == "effect" else ()))
+        rows.append([html.escape(r["record_set"]), html.escape(expected), html.escape(label) + mark,
+                     html.escape(str(r.get("confidence") or "–")), html.escape(str(r.get("runner_up") or "–")),
+                     _fmt(r.get("gap_before"), 4), _fmt(r.get("gap_after"), 4), shrink, params or "–"])
+    parts.append(_table(["record set", "expected", "verdict", "confidence", "runner-up", "gap before", "gap after",
+                         "shrink ± se", "effect parameters (± CRB σ)"], rows))
+    return "\n".join(parts)
+
+
 def _stage_cost_section(results: Path) -> str:
     """Wall time and peak memory of every workflow job, from Snakemake's benchmark files."""
     rows, total = [], 0.0
@@ -496,6 +554,10 @@ def _provenance_section(study: dict, study_path: Path, results: Path, fits: dict
                 rows.append([f"sha256 {html.escape(f.name)} ({role}, measured)", file_sha256(f)[:32] + "…"])
         except io.DataFileError:
             rows.append(["measured data", "not found"])
+    if study["concept"] == "cranfield":
+        for name in io.CRANFIELD_FILES:
+            f = io.cranfield_file(name, study, must_exist=False)
+            rows.append([f"sha256 {html.escape(f.name)} (measured)", file_sha256(f)[:32] + "…" if f.is_file() else "not found"])
     for k, fit in fits.items():
         rows.append([f"{k} fit created", html.escape(str(fit.get("provenance", {}).get("created", "")))])
     return _table(["item", "value"], [[html.escape(str(a)), str(b)] for a, b in rows])
@@ -504,6 +566,11 @@ def _provenance_section(study: dict, study_path: Path, results: Path, fits: dict
 def build_report(study: dict, study_path: str | Path, results: str | Path) -> str:
     """HTML text of the report for ``study`` from the result files in ``results``."""
     results, study_path = Path(results), Path(study_path)
+    if study["concept"] == "cranfield":  # measured fault records: one stage, healthy fit and diagnoses
+        return _render(study, [("summary", "Summary of findings", _summary_section(study, results, {})),
+                               ("faults", "Fault diagnosis of measured records", _faults_section(results)),
+                               ("cost", "Time and memory per stage", _stage_cost_section(results)),
+                               ("provenance", "Provenance", _provenance_section(study, study_path, results, {}))])
     ident, fits = _identification_section(study, results)
     sections = [("summary", "Summary of findings", _summary_section(study, results, fits)),
                 ("identification", "Maximum-likelihood identification", ident)]
@@ -527,6 +594,10 @@ def build_report(study: dict, study_path: str | Path, results: str | Path) -> st
         sections.append(("pending", "Stages not run", "<p class=\"muted\">" + ", ".join(pending) + "</p>"))
     sections.append(("cost", "Time and memory per stage", _stage_cost_section(results)))
     sections.append(("provenance", "Provenance", _provenance_section(study, study_path, results, fits)))
+    return _render(study, sections)
+
+
+def _render(study: dict, sections: list[tuple[str, str, str]]) -> str:
     body = "\n".join(f'<h2 id="{key}">{title}</h2>\n{content}' for key, title, content in sections)
     nav = " ".join(f'<a href="#{key}">{title}</a>' for key, title, _ in sections)
     template = Template(resources.files("ema_uq").joinpath(TEMPLATE).read_text())

@@ -250,3 +250,20 @@ def test_study_serialises(diagnosed):
     assert [d["record_set"] for d in data["diagnoses"]] == list(study.EXPECTED)
     assert data["reference"]["thinning_stride"] >= 1
     assert "Cranfield linear actuator" in diagnosed.summary()
+
+
+def test_fault_diagnosis_verb_refuses_a_study_of_another_concept(capsys):
+    from ema_uq.cli import main
+
+    assert main(["fault-diagnosis", "--study", "studies/htls.yaml", "--out", "x.json"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "concept htls" in err and "cranfield" in err
+
+
+def test_fault_diagnosis_verb_names_the_missing_data_folder(capsys, monkeypatch, tmp_path):
+    from ema_uq.cli import main
+
+    monkeypatch.setenv("EMA_UQ_CRANFIELD_DIR", str(tmp_path / "nowhere"))
+    assert main(["fault-diagnosis", "--study", "studies/cranfield.yaml", "--out", str(tmp_path / "f.json")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "EMA_UQ_CRANFIELD_DIR" in err and not (tmp_path / "f.json").exists()

@@ -81,16 +81,21 @@ def smoke_run(tmp_path_factory) -> Path:
 
 
 def test_default_dry_run_plans_every_study(tmp_path):
-    from ema_uq.io import emps_files
+    from ema_uq.io import CRANFIELD_FILES, cranfield_file, emps_files
     from ema_uq.study import load_study
 
     workdir = copy_workflow(tmp_path)
     jobs = planned_jobs(snakemake(workdir, "-n"))
     emps = all(p.is_file() for p in emps_files(load_study(ROOT / "studies/emps.yaml"), must_exist=False).values())
+    cranfield_study = load_study(ROOT / "studies/cranfield.yaml")
+    cranfield = all(cranfield_file(f, cranfield_study, must_exist=False).is_file() for f in CRANFIELD_FILES)
     synthetic, real = 2, int(emps)
     # per EMA study: estimation, validation and the two rig-like records; Sobol chunks from the studies
     assert jobs["simulate"] == 4 * synthetic, jobs
-    assert jobs["identify"] == 2 * (synthetic + real) and jobs["report"] == synthetic + real, jobs
+    assert jobs["identify"] == 2 * (synthetic + real), jobs
+    assert jobs["report"] == synthetic + real + int(cranfield), jobs
+    # the measured fault records have one stage of their own, planned only when the data is there
+    assert jobs.get("fault_diagnosis", 0) == int(cranfield), jobs
     assert jobs["sample"] == jobs["gap"] == synthetic + real, jobs
     assert jobs["identifiability"] == jobs["sensitivity"] == jobs["gap_selfcheck"] == synthetic, jobs
     assert jobs["sensitivity_chunk"] == 16, jobs
