@@ -46,6 +46,24 @@ def _img(fig, alt: str) -> str:
 SYNTHETIC_CONCEPTS = ("htls", "lths")
 
 
+def _held_parameters(fits: dict) -> list[str]:
+    """Parameters a fit held because its channels cannot determine them, and the identifiable
+    combinations it reports instead (FIT.json ``fixed``, ``combinations``)."""
+    parts = []
+    for k, f in fits.items():
+        if not f.get("fixed"):
+            continue
+        rule = (f.get("unidentifiable") or {}).get("rule") or ""
+        parts.append(f"<h3>{k}: parameters held (the channels cannot determine them)</h3>"
+                     f"<p>Rule: {html.escape(rule)}. Held values carry no bound.</p>")
+        parts.append(_table(["parameter", "held at", "reason"],
+                            [[n, _fmt(r["value"], 6), html.escape(r["reason"])] for n, r in f["fixed"].items()]))
+        parts.append(_table(["identifiable combination", "value", "CRB σ", "95 % interval"],
+                            [[html.escape(c["expression"]), _fmt(c["value"], 6), _fmt(c["std"], 3),
+                              f"[{_fmt(c['ci95'][0], 6)}, {_fmt(c['ci95'][1], 6)}]"] for c in f["combinations"]]))
+    return parts
+
+
 def _identification_section(study: dict, results: Path) -> tuple[str, dict]:
     model = get_model(study["concept"])
     synthetic = model.name in SYNTHETIC_CONCEPTS
@@ -83,6 +101,7 @@ def _identification_section(study: dict, results: Path) -> tuple[str, dict]:
             parts.append(f'<p class="flag">{k}: |ρ| &gt; 0.9 for {html.escape(pairs)}</p>')
         for w in f.get("warnings", []):
             parts.append(f'<p class="flag">{k}: {html.escape(w)}</p>')
+    parts += _held_parameters(fits)
 
     parts.append("<h3>Measured vs identified model (paper Fig. 2/3)</h3>")
     outputs = {k: read_fit_outputs(fit_outputs_path(results / f"fit_{k.lower()}.json")) for k in fits
