@@ -206,7 +206,7 @@ def settings_for(study: dict[str, Any], verb: str, *, role: str | None = None) -
     if verb == "gap-selfcheck":
         gap = section(study, "gap")
         return {"seed": seed, "quick": gap["selfcheck"] == "quick", "concepts": [study["concept"]],
-                "none_per_set": gap["selfcheck_none_per_set"]}
+                "none_per_set": gap["selfcheck_none_per_set"], "sensors": list(gap["selfcheck_sensors"])}
     raise StudyError(f"verb {verb!r} takes no settings from a study; these do: {', '.join(STUDY_VERBS)}")
 
 
