@@ -57,7 +57,7 @@ load senses, which bear on opposite flanks of the ball track, get one value each
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -65,7 +65,7 @@ from numba import njit, prange
 
 from ..params import Parameter, ParameterError, ParameterSet
 from .base import KERNEL_IDS, Model
-from .effects import Effect, EffectError
+from .effects import Effect, FlaggedSimulator, augment_own_kernel, off_vector
 
 #: standard gravity [m/s²]: the records give the load in kgf
 G0 = 9.80665
@@ -272,14 +272,11 @@ _KERNEL_INDEX = {"kp": P_KP, "ki": P_KI, "tau": P_TAU, "i_rest": P_I_REST, "i_ru
                  "friction_increase_dC_pos": E_DC, "friction_increase_dC_neg": E_DC_NEG,
                  "current_gain_error": E_GAIN, "current_offset_di": E_OFFSET}
 #: The kernel's full parameter vector with every effect off (base entries overwritten per call).
-_OFF_VALUES = np.zeros(N_FULL)
-for _effect in EFFECTS.values():
-    for _name, _value in _effect.off.items():
-        _OFF_VALUES[_KERNEL_INDEX[_name]] = _value
+_OFF_VALUES = off_vector(EFFECTS, _KERNEL_INDEX, N_FULL)
 
 
 @dataclass(frozen=True)
-class BatchSimulator:
+class BatchSimulator(FlaggedSimulator):
     """The Cranfield simulator bound to a set of switched-on effects (``Model.batch_simulator``).
 
     Called by :func:`ema_uq.simulate.simulate_batch` as
@@ -289,20 +286,10 @@ class BatchSimulator:
     set point, so ``x0`` must be None.
     """
 
-    effects: tuple[str, ...] = ()
-
-    @property
-    def flags(self) -> int:
-        return int(sum(_FLAGS[name] for name in self.effects))
-
-    def full_vectors(self, model: Model, thetas: np.ndarray) -> np.ndarray:
-        try:
-            index = np.array([_KERNEL_INDEX[name] for name in model.parameters.names], dtype=np.int64)
-        except KeyError as exc:
-            raise EffectError(f"parameter {exc.args[0]!r} has no place in the Cranfield kernel") from None
-        full = np.repeat(_OFF_VALUES[None, :], thetas.shape[0], axis=0)
-        full[:, index] = thetas
-        return full
+    RIG = "Cranfield"
+    FLAGS = _FLAGS
+    KERNEL_INDEX = _KERNEL_INDEX
+    OFF_VALUES = _OFF_VALUES
 
     def __call__(self, model: Model, thetas: np.ndarray, inputs: np.ndarray, constants: np.ndarray,
                  x0: np.ndarray | None, dt: float, n_sub: int) -> np.ndarray:
@@ -319,23 +306,9 @@ class BatchSimulator:
 
 def augment(model: Model, names: Sequence[str], values: Mapping[str, float] | None = None) -> Model:
     """The Cranfield model with the named effects switched on (``Model.augment`` of this concept,
-    called by ``Model.with_effects``, which checks the names): the nominal parameters followed
-    by each effect's, at the effect's nominal values overridden by ``values`` (full names).
-
-    An effect at its ``off`` values reproduces the nominal outputs bit for bit.
-    """
-    base = model.base_model
+    called by ``Model.with_effects``; :func:`~ema_uq.models.effects.augment_own_kernel`)."""
     names = tuple(names)
-    unknown = [n for n in names if n not in EFFECTS]
-    if unknown:
-        raise EffectError(f"unknown Cranfield effect(s) {', '.join(unknown)}; choose from {', '.join(EFFECTS)}")
-    parameters = base.parameters + ParameterSet(tuple(p for n in names for p in EFFECTS[n].parameters))
-    if values:
-        parameters = parameters.with_nominal(values)
-        parameters.check_within_bounds(parameters.nominal, what="effect value")
-    return replace(base, title=f"{base.title} + {' + '.join(names)}", parameters=parameters, effects=names,
-                   batch_simulator=BatchSimulator(names), built_from=base)
-
+    return augment_own_kernel(model, names, values, catalogue=EFFECTS, rig="Cranfield", simulator=BatchSimulator(names))
 
 MODEL = Model(
     name="cranfield", model_id=KERNEL_IDS["cranfield"][0], title="Cranfield linear actuator (stepper ball screw, measured)",

@@ -491,6 +491,63 @@ def augment_ema(model: "Model", names: tuple[str, ...], values: dict[str, float]
                    effects=tuple(names), postprocess=_OutputSteps(steps) if steps else None, built_from=model)
 
 
+def augment_own_kernel(model: "Model", names: Sequence[str], values: Mapping[str, float] | None, *,
+                       catalogue: Mapping[str, Effect], rig: str, simulator: Callable, **changes) -> "Model":
+    """``Model.augment`` of a concept whose own batch simulator runs its effects (EMPS,
+    Cranfield): the nominal parameters followed by each effect's of ``catalogue``, at the
+    effect's nominal values overridden by ``values`` (full names), run by ``simulator`` (the
+    concept's batch simulator bound to ``names``); ``changes`` are further fields that follow
+    the effects (e.g. the states). ``rig`` names the concept in errors.
+
+    An effect at its ``off`` values reproduces the nominal outputs bit for bit.
+    """
+    base = model.base_model
+    names = tuple(names)
+    unknown = [n for n in names if n not in catalogue]
+    if unknown:
+        raise EffectError(f"unknown {rig} effect(s) {', '.join(unknown)}; choose from {', '.join(catalogue)}")
+    parameters = base.parameters + ParameterSet(tuple(p for n in names for p in catalogue[n].parameters))
+    if values:
+        parameters = parameters.with_nominal(values)
+        parameters.check_within_bounds(parameters.nominal, what="effect value")
+    return replace(base, title=f"{base.title} + {' + '.join(names)}", parameters=parameters, effects=names,
+                   batch_simulator=simulator, built_from=base, **changes)
+
+
+def off_vector(catalogue: Mapping[str, Effect], kernel_index: Mapping[str, int], size: int) -> np.ndarray:
+    """A flagged kernel's full parameter vector (``size``,) with every effect of ``catalogue``
+    at its ``off`` values (zeros elsewhere: the base entries are overwritten per call)."""
+    off = np.zeros(size)
+    for effect in catalogue.values():
+        for name, value in effect.off.items():
+            off[kernel_index[name]] = value
+    return off
+
+
+@dataclass(frozen=True)
+class FlaggedSimulator:
+    """Base of the batch simulators whose own kernel switches effects by bit flags (EMPS,
+    Cranfield), bound to the switched-on ``effects``. A subclass sets the class attributes
+    RIG (name in errors), FLAGS (effect -> kernel bit), KERNEL_INDEX (parameter name ->
+    position in the kernel's full vector) and OFF_VALUES (:func:`off_vector`)."""
+
+    effects: tuple[str, ...] = ()
+
+    @property
+    def flags(self) -> int:
+        return int(sum(self.FLAGS[name] for name in self.effects))
+
+    def full_vectors(self, model: "Model", thetas: np.ndarray) -> np.ndarray:
+        """(n_sets, n_full) kernel vectors: OFF_VALUES with ``thetas`` (n_sets, n_params) in place."""
+        try:
+            index = np.array([self.KERNEL_INDEX[name] for name in model.parameters.names], dtype=np.int64)
+        except KeyError as exc:
+            raise EffectError(f"parameter {exc.args[0]!r} has no place in the {self.RIG} kernel") from None
+        full = np.repeat(self.OFF_VALUES[None, :], thetas.shape[0], axis=0)
+        full[:, index] = thetas
+        return full
+
+
 @dataclass(frozen=True)
 class _OutputSteps:
     """``Model.postprocess`` of an augmented model: the output-side steps of its effects in
@@ -516,5 +573,6 @@ class _DeriveWithLayout:
         return np.concatenate([self.base(c), np.asarray(self.tail, dtype=np.float64)])
 
 
-__all__ = ["CATALOGUE", "EFFECT_ORDER", "EXCLUSIVE", "Effect", "EffectError", "LAYOUT", "LAYOUT_SIZE", "SIGNATURES", "augment_ema",
-           "delay_outputs", "effect_parameters", "parse_effect"]
+__all__ = ["CATALOGUE", "EFFECT_ORDER", "EXCLUSIVE", "Effect", "EffectError", "FlaggedSimulator", "LAYOUT", "LAYOUT_SIZE",
+           "SIGNATURES", "augment_ema", "augment_own_kernel", "delay_outputs", "effect_parameters", "off_vector",
+           "parse_effect"]

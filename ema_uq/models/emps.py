@@ -37,7 +37,7 @@ outputs bit for bit.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -45,7 +45,7 @@ from numba import njit, prange
 
 from ..params import Parameter, ParameterError, ParameterSet
 from .base import KERNEL_IDS, Model
-from .effects import Effect, EffectError
+from .effects import Effect, FlaggedSimulator, augment_own_kernel, off_vector
 
 # --- estimated parameters Θ of the nominal model, kernel positions ----------------------
 (P_M, P_FV, P_FC, P_OFFSET) = range(4)
@@ -336,14 +336,11 @@ _KERNEL_INDEX = {"M": P_M, "Fv": P_FV, "Fc": P_FC, "offset": P_OFFSET,
                  "compliance_load_fraction": E_LOAD_FRACTION, "compliance_f_res": E_F_RES,
                  "compliance_zeta": E_ZETA_RES}
 #: The kernel's full parameter vector with every effect off (base entries overwritten per call).
-_OFF_VALUES = np.zeros(N_FULL)
-for _effect in EFFECTS.values():
-    for _name, _value in _effect.off.items():
-        _OFF_VALUES[_KERNEL_INDEX[_name]] = _value
+_OFF_VALUES = off_vector(EFFECTS, _KERNEL_INDEX, N_FULL)
 
 
 @dataclass(frozen=True)
-class BatchSimulator:
+class BatchSimulator(FlaggedSimulator):
     """The EMPS simulator bound to a set of switched-on effects (``Model.batch_simulator``).
 
     Called by :func:`ema_uq.simulate.simulate_batch` as
@@ -353,20 +350,10 @@ class BatchSimulator:
     constants ``q0``, ``qd0`` when given.
     """
 
-    effects: tuple[str, ...] = ()
-
-    @property
-    def flags(self) -> int:
-        return int(sum(_FLAGS[name] for name in self.effects))
-
-    def full_vectors(self, model: Model, thetas: np.ndarray) -> np.ndarray:
-        try:
-            index = np.array([_KERNEL_INDEX[name] for name in model.parameters.names], dtype=np.int64)
-        except KeyError as exc:
-            raise EffectError(f"parameter {exc.args[0]!r} has no place in the EMPS kernel") from None
-        full = np.repeat(_OFF_VALUES[None, :], thetas.shape[0], axis=0)
-        full[:, index] = thetas
-        return full
+    RIG = "EMPS"
+    FLAGS = _FLAGS
+    KERNEL_INDEX = _KERNEL_INDEX
+    OFF_VALUES = _OFF_VALUES
 
     def __call__(self, model: Model, thetas: np.ndarray, inputs: np.ndarray, constants: np.ndarray,
                  x0: np.ndarray | None, dt: float, n_sub: int) -> np.ndarray:
@@ -387,24 +374,10 @@ class BatchSimulator:
 
 def augment(model: Model, names: Sequence[str], values: Mapping[str, float] | None = None) -> Model:
     """The EMPS model with the named effects switched on (``Model.augment`` of this concept,
-    called by ``Model.with_effects``, which checks the names): the nominal parameters followed
-    by each effect's, at the effect's nominal values overridden by ``values`` (full names).
-
-    An effect at its ``off`` values reproduces the nominal outputs bit for bit.
-    """
-    base = model.base_model
+    called by ``Model.with_effects``; :func:`~ema_uq.models.effects.augment_own_kernel`)."""
     names = tuple(names)
-    unknown = [n for n in names if n not in EFFECTS]
-    if unknown:
-        raise EffectError(f"unknown EMPS effect(s) {', '.join(unknown)}; choose from {', '.join(EFFECTS)}")
-    parameters = base.parameters + ParameterSet(tuple(p for n in names for p in EFFECTS[n].parameters))
-    if values:
-        parameters = parameters.with_nominal(values)
-        parameters.check_within_bounds(parameters.nominal, what="effect value")
-    return replace(base, title=f"{base.title} + {' + '.join(names)}",
-                   states=COMPLIANCE_STATES if "compliance" in names else STATES,
-                   parameters=parameters, effects=names, batch_simulator=BatchSimulator(names), built_from=base)
-
+    return augment_own_kernel(model, names, values, catalogue=EFFECTS, rig="EMPS", simulator=BatchSimulator(names),
+                              states=COMPLIANCE_STATES if "compliance" in names else STATES)
 
 MODEL = Model(
     name="emps", model_id=KERNEL_IDS["emps"][0], title="EMPS (ball-screw positioning benchmark, measured)",
