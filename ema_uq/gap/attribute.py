@@ -101,7 +101,7 @@ import numpy as np
 
 from .. import statistics
 from ..experiments import Measurement
-from ..identify import FitProblem, FitResult, IdentificationError, Settings, estimate
+from ..identify import FitProblem, FitResult, IdentificationError, Settings, SingularInformationError, estimate
 from ..models import get_model
 from ..params import ParameterError
 from ..simulate import SimulationError, simulate_batch
@@ -450,11 +450,18 @@ def _robust_estimate(problem: FitProblem, start: np.ndarray, settings: Settings)
     """Gauss-Newton, retried by Levenberg-Marquardt when a step goes singular: an effect
     parameter at a bound where another loses its effect (an amplitude at its off bound leaves
     its phase free, Stribeck Fs = 0 leaves v_s free) makes the Gauss-Newton matrix singular,
-    which the damping survives."""
+    which the damping survives. When the start itself cannot separate some freed base
+    parameter (a reduced sensor set: on the LT/HS rig sensors C_TS2 alone), those parameters are
+    held at their start values as ``identify`` does (named in the fit) rather than losing the
+    candidate."""
     try:
         return estimate(problem, method="gn", start=start, settings=settings)
     except (IdentificationError, np.linalg.LinAlgError):
+        pass
+    try:
         return estimate(problem, method="lm", start=start, settings=settings)
+    except SingularInformationError:
+        return estimate(problem, method="lm", start=start, settings=settings, unidentifiable="fix")
 
 
 def _refit(run: _Diagnosis, reference: _Reference, name: str, effect, start: np.ndarray | None = None,

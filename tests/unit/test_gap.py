@@ -450,3 +450,25 @@ def test_library_refuses_mixed_concepts_and_unknown_candidates(files):
 def test_full_blind_self_check_meets_the_targets():
     result = selfcheck.self_check(seed=selfcheck.DEFAULT_SEED, jobs=2)
     assert all(result.met.values()), result.summary()
+
+
+def test_candidate_refit_holds_a_base_parameter_the_rig_sensors_cannot_separate():
+    """The LT/HS rig sensors cannot determine every base parameter (in the diagnosis of a
+    Stribeck record C_TS2 alone); a candidate refit that freed such a parameter used to fail at
+    its start, the candidate was lost and the record came out 'unexplained'. The refit now holds
+    what the sensors cannot separate at its start value and names it."""
+    from ema_uq.gap import variants
+    from ema_uq.gap.attribute import _robust_estimate
+    from ema_uq.identify import FitProblem, Settings, SingularInformationError, estimate
+    from ema_uq.models import get_model
+
+    estimation, *_ = variants.make_records("lths", "stribeck_gaussian", {"ratio": 0.5, "speed": 1.4},
+                                           seed=4242, channels="realistic")
+    model = get_model("lths").with_effects(["stribeck"])
+    problem = FitProblem([estimation], model=model)  # every base parameter free with the effect's
+    settings = Settings(max_iterations=3)
+    with pytest.raises(SingularInformationError):
+        estimate(problem, method="lm", settings=settings)
+    fit = _robust_estimate(problem, model.parameters.nominal.copy(), settings)
+    assert fit.fixed and not set(fit.fixed) & set(fit.free_names)
+    assert {"stribeck_ratio", "stribeck_speed"} <= set(fit.free_names)
