@@ -718,11 +718,13 @@ def _gap_summary(run: _Diagnosis, before: dict, after: dict | None, verdict: str
     b, a = before["all"], (after or before)["all"]
     shown = verdict == "effect" and after is not None
     b_score, a_score = before["scoring"], (after or before)["scoring"]
+    # no gap on the scoring part: the shrink is undefined, and so is its standard error
+    defined = shown and b_score["gap"] > 0
     return {
         "metric": run.strategy.metric.description,
         "before": b["gap"], "after": a["gap"],
-        "shrink": (1.0 - a_score["gap"] / b_score["gap"] if b_score["gap"] > 0 else float("nan")) if shown else None,
-        "shrink_se": run.shrink_se(b_score, a_score) if shown else None,
+        "shrink": (1.0 - a_score["gap"] / b_score["gap"] if defined else float("nan")) if shown else None,
+        "shrink_se": (run.shrink_se(b_score, a_score) if defined else float("nan")) if shown else None,
         "shrink_record": run.data.shrink_record,
         "shrink_gap_before": b_score["gap"], "shrink_gap_after": a_score["gap"] if shown else None,
         "selection_shrink": (1.0 - after["selection"]["gap"] / before["selection"]["gap"]
