@@ -39,9 +39,11 @@ class Settings:
 class SingularInformationError(IdentificationError):
     """The data cannot determine every free parameter at the start (singular information
     matrix); ``estimate(..., unidentifiable="fix")`` holds the undetermined ones instead.
-    ``n_simulations``: simulations spent before the test failed."""
+    ``n_simulations``: simulations spent before the test failed; ``direction``: the free
+    parameters of the (near-)null direction with their weights in it (largest first)."""
 
     n_simulations: int = 0
+    direction: dict | None = None
 
 
 class _State:
@@ -109,18 +111,22 @@ def _check_information(problem: FitProblem, info: np.ndarray, sens: np.ndarray) 
     names = problem.parameters.free_names
     dead = [names[j] for j in range(len(names)) if not np.any(sens[:, :, j])]
     if dead:
-        raise SingularInformationError(
+        error = SingularInformationError(
             f"singular information matrix: {', '.join(dead)} has no effect on the channels "
             f"{', '.join(problem.channels)}; fix it (free=False) or add a channel that depends on it"
         )
+        error.direction = {name: 1.0 for name in dead}
+        raise error
     evals, evecs = np.linalg.eigh(info)
     if evals[0] <= SINGULAR_RCOND * evals[-1]:
         v = evecs[:, 0]
         members = [f"{v[j]:+.2f}*{names[j]}" for j in np.argsort(-np.abs(v)) if abs(v[j]) > 0.2]
-        raise SingularInformationError(
+        error = SingularInformationError(
             f"singular information matrix (condition {evals[-1] / max(evals[0], 1e-300):.1e}): the data cannot "
             f"separate the direction {' '.join(members)}; fix one of these parameters or add channels"
         )
+        error.direction = {names[j]: float(v[j]) for j in np.argsort(-np.abs(v)) if abs(v[j]) > 0.2}
+        raise error
 
 
 def _bounded_step(problem: FitProblem, state: _State, matrix: np.ndarray, grad: np.ndarray,

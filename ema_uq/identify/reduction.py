@@ -102,10 +102,24 @@ def estimate_holding_unidentifiable(problem: FitProblem, *, method: str = "gn", 
     except SingularInformationError as exc:
         error, spent = exc, exc.n_simulations
     held, n_detect = held_parameters(problem, start)
-    if not held:  # singular to the optimiser's forward differences only
+    for _ in range(len(problem.parameters.free_names)):
+        if not held:
+            # singular to the optimiser's forward differences only (condition just above its
+            # limit, e.g. LT/HS C_MG against the station Coulomb losses): hold the member that
+            # weighs most in the direction it reported
+            held = _held_from_direction(error, start, problem)
+        reduced = replace(problem, parameters=problem.parameters.fixing(list(held)))
+        try:
+            fit = estimate(reduced, method=method, start=start, settings=settings, seed=seed)
+            break
+        except SingularInformationError as exc:
+            error, spent = exc, spent + exc.n_simulations
+            more = _held_from_direction(error, start, problem)
+            if not more or set(more) <= set(held):
+                raise
+            held = {**held, **more}
+    else:
         raise error
-    reduced = replace(problem, parameters=problem.parameters.fixing(list(held)))
-    fit = estimate(reduced, method=method, start=start, settings=settings, seed=seed)
     combos, n_combos = identifiable_combinations(problem, fit.estimate)
     for name in held:
         fit.std[fit.names.index(name)] = np.nan
@@ -113,3 +127,16 @@ def estimate_holding_unidentifiable(problem: FitProblem, *, method: str = "gn", 
     fit.n_simulations += spent + n_detect + n_combos
     fit.wall_time_s = time.perf_counter() - t0
     return fit
+
+
+def _held_from_direction(error: SingularInformationError, start: np.ndarray, problem: FitProblem
+                         ) -> dict[str, dict[str, Any]]:
+    """{name: {"value", "reason"}} of the free parameter weighing most in the direction a
+    :class:`SingularInformationError` reported (empty when it reported none)."""
+    direction = error.direction or {}
+    if not direction:
+        return {}
+    name = max(direction, key=lambda n: abs(direction[n]))
+    members = " ".join(f"{w:+.2f}*{n}" for n, w in direction.items())
+    return {name: {"value": float(start[problem.parameters.index(name)]),
+                   "reason": f"near-null direction {members} of the optimiser's information matrix at the start"}}

@@ -161,3 +161,22 @@ def test_lths_rig_fit_reports_the_structural_sums():
     for c in fit.combinations:
         exact = sum(a * truth[n] for n, a in c["coefficients"].items())
         assert c["structural"] and abs(c["value"] - exact) < 3 * c["std"], (c["expression"], c["value"], exact)
+
+
+def test_a_direction_only_the_optimiser_sees_is_held_member_by_member(monkeypatch):
+    """When the central-difference detector keeps every parameter (a condition just above the
+    optimiser's limit: LT/HS C_MG against the station Coulomb losses) the fit holds, one at a
+    time, the member weighing most in the direction the optimiser reports, instead of failing."""
+    from ema_uq.identify import reduction
+
+    monkeypatch.setattr(reduction, "held_parameters", lambda problem, start: ({}, 0))
+    model = get_model("htls")
+    problem = FitProblem([_record(1)], parameters=model.parameters.freeing_only(["J", "B_TS1", "B_TS2", "k_n"]))
+    with pytest.raises(SingularInformationError) as caught:
+        estimate(problem, start=model.parameters.nominal)
+    assert set(caught.value.direction) == {"B_TS1", "B_TS2"}
+    fit = estimate(problem, start=model.parameters.nominal, unidentifiable="fix")
+    assert fit.converged and len(fit.fixed) == 1 and set(fit.fixed) < {"B_TS1", "B_TS2"}
+    name = next(iter(fit.fixed))
+    assert "near-null direction" in fit.fixed[name]["reason"] and np.isnan(fit.std[fit.names.index(name)])
+    assert set(fit.free_names) == {"J", "B_TS1", "B_TS2", "k_n"} - {name}
