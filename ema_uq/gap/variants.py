@@ -51,7 +51,8 @@ How the variants differ from the catalogue's forms
     mu r F_ref (|F|_s / F_ref)^1.2 - mu r F_ref (F0 / F_ref)^1.2, |F|_s = sqrt(F^2 + F0^2),
     F0 = 200 N, F_ref = 10 kN, on both ball screws.
 ``ujoint_cardan`` (``ujoint_kinematics``)
-    Catalogue: eq. 8 at the design angles scaled by a ripple factor, one yoke phase. Here: the
+    Catalogue: eq. 8 at the design angles scaled by a ripple factor, one yoke phase for both
+    stations (``ujoint_kinematics``) or a factor and a phase per station (``ujoint_stations``). Here: the
     Cardan relation tan(phi_out) = tan(phi_in) / cos(beta) differentiated,
     d phi_out / d phi_in = cos(beta) / (cos^2(beta) cos^2(phi_in) + sin^2(phi_in)), at a rig joint
     angle beta_k larger than designed and a yoke phase per station; the ideal joint passes the

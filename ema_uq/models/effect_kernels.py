@@ -48,6 +48,7 @@ FX_COMPLIANCE = LAYOUT["shaft_compliance"]
 FX_LOAD_FRACTION = LAYOUT["shaft_compliance_load_fraction"]  # [1]
 FX_MODE_OMEGA_MAX = LAYOUT["shaft_compliance_mode_omega_max"]  # [rad/s]
 FX_UJOINT = LAYOUT["ujoint_kinematics"]
+FX_UJOINT_STATIONS = LAYOUT["ujoint_stations"]
 FX_LOAD_FRICTION = LAYOUT["load_dependent_friction"]
 FX_RIPPLE = LAYOUT["torque_ripple"]
 FX_RIPPLE_PERIODS = LAYOUT["torque_ripple_periods"]         # periods per motor revolution
@@ -152,6 +153,20 @@ def _ujoint_factor(cos_angle, scale, inv_cos_beta):
 
 
 @njit(cache=True, inline="always", error_model="numpy")
+def _ujoint_positions(c, t):
+    """Positions in th of each station's U-joint ripple scale (its yoke phase follows it):
+    ujoint_kinematics' one pair for both stations, ujoint_stations' own pair per station, or
+    (-1, -1) without a U-joint effect."""
+    p_uj = int(c[t + FX_UJOINT])
+    if p_uj >= 0:
+        return p_uj, p_uj
+    p_us = int(c[t + FX_UJOINT_STATIONS])
+    if p_us >= 0:
+        return p_us, p_us + 2
+    return -1, -1
+
+
+@njit(cache=True, inline="always", error_model="numpy")
 def _stribeck(speed, ratio, v_s):
     """Coulomb multiplier 1 + ρ exp(-(v/v_s)²)."""
     z = speed / v_s
@@ -189,16 +204,16 @@ def _station(omega_tp, sign_tp, cos_angle, f_tp, f_er, b_ts, c_ts, b_u, c_u, r_s
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _shared_terms(omega_tp1, omega_tp2, angle1, angle2, eps, p_uj, p_st, th):
+def _shared_terms(omega_tp1, omega_tp2, angle1, angle2, eps, p_uj1, p_uj2, p_st, th):
     """sgn_ε, cos(θ_TP + φ_U) and Stribeck factor of both stations, each computed once when
     the two shafts turn alike (identical arguments give identical results)."""
     sign1 = smooth_sign(omega_tp1, eps)
     sign2 = sign1 if omega_tp2 == omega_tp1 else smooth_sign(omega_tp2, eps)
     cos1 = 1.0
     cos2 = 1.0
-    if p_uj >= 0:
-        cos1 = math.cos(angle1 + th[p_uj + 1])
-        cos2 = cos1 if angle2 == angle1 else math.cos(angle2 + th[p_uj + 1])
+    if p_uj1 >= 0:
+        cos1 = math.cos(angle1 + th[p_uj1 + 1])
+        cos2 = cos1 if angle2 == angle1 and p_uj2 == p_uj1 else math.cos(angle2 + th[p_uj2 + 1])
     f1 = 1.0
     f2 = 1.0
     if p_st >= 0:
@@ -270,7 +285,7 @@ def evaluate_htls_effects(x, u, th, c, dx, y):
     p_st = int(c[t + FX_STRIBECK])
     p_sc = int(c[t + FX_COMPLIANCE])
     x_sc = int(c[t + FX_COMPLIANCE + 1])
-    p_uj = int(c[t + FX_UJOINT])
+    p_uj1, p_uj2 = _ujoint_positions(c, t)
     p_ld = int(c[t + FX_LOAD_FRICTION])
     p_tr = int(c[t + FX_RIPPLE])
     relaxation, softness = c[t + FX_BACKLASH_RELAXATION], c[t + FX_BACKLASH_SOFTNESS]
@@ -328,13 +343,13 @@ def evaluate_htls_effects(x, u, th, c, dx, y):
     r = c[H.C_R]
     f_er1, f_er2, slope1, slope2 = _nut_contact(x, th, c, t, p_np, x_np, u[1], u[2])
     sign_tp1, sign_tp2, cos1, cos2, f_tp1, f_tp2 = _shared_terms(
-        omega_tp1, omega_tp2, theta / i_tp1, theta / i_tp2, eps, p_uj, p_st, th)
+        omega_tp1, omega_tp2, theta / i_tp1, theta / i_tp2, eps, p_uj1, p_uj2, p_st, th)
     omega_u1, m_er1, m_tser1, m_uer1 = _station(
         omega_tp1, sign_tp1, cos1, f_tp1, f_er1, th[H.P_B_TS1], th[H.P_C_TS1], th[H.P_B_U1], th[H.P_C_U1],
-        c[H.D_R_SCG], c[H.D_INV_COS_B1], p_uj, p_st, p_ld, r, th)
+        c[H.D_R_SCG], c[H.D_INV_COS_B1], p_uj1, p_st, p_ld, r, th)
     omega_u2, m_er2, m_tser2, m_uer2 = _station(
         omega_tp2, sign_tp2, cos2, f_tp2, f_er2, th[H.P_B_TS2], th[H.P_C_TS2], th[H.P_B_U2], th[H.P_C_U2],
-        c[H.D_R_SCG], c[H.D_INV_COS_B2], p_uj, p_st, p_ld, r, th)
+        c[H.D_R_SCG], c[H.D_INV_COS_B2], p_uj2, p_st, p_ld, r, th)
     carriage1, carriage2 = _nut_play_rates(x, th, c, t, p_np, x_np, omega_u1, omega_u2, slope1, slope2, dx)
     brake = u[3]
     m_b21 = brake_torque(brake, omega_tp1, c[H.C_M_BMAX], c[H.C_K_B], c[H.C_OMEGA_HALF], eps)
@@ -395,7 +410,7 @@ def evaluate_lths_effects(x, u, th, c, dx, y):
     p_st = int(c[t + FX_STRIBECK])
     p_sc = int(c[t + FX_COMPLIANCE])
     x_sc = int(c[t + FX_COMPLIANCE + 1])
-    p_uj = int(c[t + FX_UJOINT])
+    p_uj1, p_uj2 = _ujoint_positions(c, t)
     p_ld = int(c[t + FX_LOAD_FRICTION])
     p_tr = int(c[t + FX_RIPPLE])
     relaxation, softness = c[t + FX_BACKLASH_RELAXATION], c[t + FX_BACKLASH_SOFTNESS]
@@ -451,13 +466,13 @@ def evaluate_lths_effects(x, u, th, c, dx, y):
     theta_bg = theta / i_mg
     f_er1, f_er2, slope1, slope2 = _nut_contact(x, th, c, t, p_np, x_np, u[1], u[2])
     sign_tp1, sign_tp2, cos1, cos2, f_tp1, f_tp2 = _shared_terms(
-        omega_tp1, omega_tp2, theta_bg / i_bg1, theta_bg / i_bg2 / i_tp2, eps, p_uj, p_st, th)
+        omega_tp1, omega_tp2, theta_bg / i_bg1, theta_bg / i_bg2 / i_tp2, eps, p_uj1, p_uj2, p_st, th)
     omega_u1, m_er1, m_tser1, m_uer1 = _station(
         omega_tp1, sign_tp1, cos1, f_tp1, f_er1, th[L.P_B_TS1], th[L.P_C_TS1], th[L.P_B_U1], th[L.P_C_U1],
-        c[L.D_R_SCG], c[L.D_INV_COS_B1], p_uj, p_st, p_ld, r, th)
+        c[L.D_R_SCG], c[L.D_INV_COS_B1], p_uj1, p_st, p_ld, r, th)
     omega_u2, m_er2, m_tser2, m_uer2 = _station(
         omega_tp2, sign_tp2, cos2, f_tp2, f_er2, th[L.P_B_TS2], th[L.P_C_TS2], th[L.P_B_U2], th[L.P_C_U2],
-        c[L.D_R_SCG], c[L.D_INV_COS_B2], p_uj, p_st, p_ld, r, th)
+        c[L.D_R_SCG], c[L.D_INV_COS_B2], p_uj2, p_st, p_ld, r, th)
     carriage1, carriage2 = _nut_play_rates(x, th, c, t, p_np, x_np, omega_u1, omega_u2, slope1, slope2, dx)
     brake = u[3]
     m_b22 = brake_torque(brake, omega_tp2, c[L.C_M_BMAX], c[L.C_K_B], c[L.C_OMEGA_HALF], eps)

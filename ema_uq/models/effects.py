@@ -70,6 +70,11 @@ Further forms of these families (``Effect.family``; the gap diagnosis names the 
     carriage (the measured position, on which the position loop closes) stands, and the load
     force reaches the screw only at a flank. Two states, the nut travel inside each play.
 
+``ujoint_stations`` (family ``ujoint_kinematics``)
+    The U-joint factor of ``ujoint_kinematics`` with each station's own ripple scale a_k and yoke
+    phase φ_k, g_Uk = 1 + a_k (g_k - 1): the two joints of a rig are separate parts, each at its
+    own working angle and assembled at its own phase (one a and φ for both assumes them alike).
+    Parameters a1, φ1, a2, φ2; off at a1 = a2 = 0.
 ``torque_ripple_harmonics`` (family ``torque_ripple``)
     The ripple of ``torque_ripple`` with its 2nd and 3rd harmonic, k_n A (sin(n_p θ + φ1)
     + h2 sin(2 n_p θ + φ2) + h3 sin(3 n_p θ + φ3)); the harmonics as ratios h2, h3 to the
@@ -376,10 +381,25 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (
         signature=("periodic", "low_speed"), magnitude="torque_ripple_harmonics_amplitude",
         constants={"htls": {"periods": 6.0}, "lths": {"periods": 4.0}},  # fundamental periods per motor revolution
         family="torque_ripple"),
+    Effect(
+        "ujoint_stations",
+        "exact U-joint speed factor of eq. 8 with a ripple scale and a yoke phase per station: two "
+        "joints of a rig, each at its own angle and assembled at its own phase",
+        (_p("ujoint_stations_scale1", "1", 6.0, 0.0, 100.0, "ripple scale a1 of station 1's joint (1 = design angle)"),
+         _p("ujoint_stations_phase1", "rad", 0.0, -TWO_PI, TWO_PI, "yoke phase of station 1's joint at θ = 0"),
+         _p("ujoint_stations_scale2", "1", 6.0, 0.0, 100.0, "ripple scale a2 of station 2's joint (1 = design angle)"),
+         _p("ujoint_stations_phase2", "rad", 0.0, -TWO_PI, TWO_PI, "yoke phase of station 2's joint at θ = 0")),
+        start={"ujoint_stations_scale1": 0.1, "ujoint_stations_phase1": 0.0,
+               "ujoint_stations_scale2": 0.1, "ujoint_stations_phase2": 0.0},
+        off={"ujoint_stations_scale1": 0.0, "ujoint_stations_phase1": 0.0,
+             "ujoint_stations_scale2": 0.0, "ujoint_stations_phase2": 0.0},
+        signature=("periodic", "high_load"), magnitude="ujoint_stations_scale1",
+        family="ujoint_kinematics"),
 )}
 
-#: Effects that cannot share one model: both model the same coupling (its twist states).
-EXCLUSIVE: tuple[frozenset[str], ...] = (frozenset({"shaft_compliance", "backlash_compliant"}),)
+#: Effects that cannot share one model: both model the same coupling (its twist states, or its joints).
+EXCLUSIVE: tuple[frozenset[str], ...] = (frozenset({"shaft_compliance", "backlash_compliant"}),
+                                          frozenset({"ujoint_kinematics", "ujoint_stations"}))
 
 #: Kernel order of the catalogue effects (the layout table of the augmented kernels).
 EFFECT_ORDER: tuple[str, ...] = tuple(CATALOGUE)

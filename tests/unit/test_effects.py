@@ -34,10 +34,10 @@ MAGNITUDE = {"backlash": "backlash_delta", "stribeck": "stribeck_ratio", "shaft_
              "ujoint_kinematics": "ujoint_kinematics_scale", "load_dependent_friction": "load_dependent_friction_mu",
              "sensor_delay": "sensor_delay_tau", "torque_ripple": "torque_ripple_amplitude",
              "backlash_compliant": "backlash_compliant_period", "backlash_output": "backlash_output_delta",
-             "torque_ripple_harmonics": "torque_ripple_harmonics_amplitude"}
+             "torque_ripple_harmonics": "torque_ripple_harmonics_amplitude", "ujoint_stations": "ujoint_stations_scale1"}
 #: further forms of the spec effects' families (the catalogue after the seven), form -> family
 FAMILY_FORMS = {"backlash_compliant": "backlash", "backlash_output": "backlash",
-                "torque_ripple_harmonics": "torque_ripple"}
+                "torque_ripple_harmonics": "torque_ripple", "ujoint_stations": "ujoint_kinematics"}
 NOISE = 0.02  # fraction of channel RMS, MODEL_SPEC "hypothetical data"
 
 
@@ -201,11 +201,11 @@ def test_effects_at_off_reproduce_nominal_bit_for_bit(concept, experiment, nomin
         np.testing.assert_array_equal(runs(aug, aug.parameters.vector(effect.off), experiment)[0],
                                       nominal_runs[concept], err_msg=name)
     # every effect at once (of the exclusive pairs, one and then the other)
-    for left_out in ("backlash_compliant", "shaft_compliance"):
-        everything = base.with_effects([n for n in CATALOGUE if n != left_out])
-        off = everything.parameters.vector({k: v for n, e in CATALOGUE.items() if n != left_out
+    for left_out in ({"backlash_compliant", "ujoint_stations"}, {"shaft_compliance", "ujoint_kinematics"}):
+        everything = base.with_effects([n for n in CATALOGUE if n not in left_out])
+        off = everything.parameters.vector({k: v for n, e in CATALOGUE.items() if n not in left_out
                                             for k, v in e.off.items()})
-        np.testing.assert_array_equal(runs(everything, off, experiment)[0], nominal_runs[concept], err_msg=left_out)
+        np.testing.assert_array_equal(runs(everything, off, experiment)[0], nominal_runs[concept], err_msg=str(left_out))
 
 
 @njit(cache=True)
@@ -481,7 +481,7 @@ def test_shaft_mode_matches_an_independent_two_inertia_model(concept):
 
 @pytest.mark.parametrize("concept", ["htls", "lths"])
 def test_batched_equals_single(concept, experiment):
-    names = [n for n in CATALOGUE if n != "backlash_compliant"]  # it and shaft_compliance are one coupling
+    names = [n for n in CATALOGUE if n not in ("backlash_compliant", "ujoint_stations")]  # each of EXCLUSIVE once
     aug = get_model(concept).with_effects(names)
     nominal = aug.parameters.nominal
     thetas = np.stack([nominal, aug.parameters.vector({"backlash_delta": 0.01, "sensor_delay_tau": 0.013,
@@ -650,3 +650,29 @@ def test_ripple_harmonics_reduce_to_the_single_ripple_and_add_its_harmonics(expe
     harmonics = runs(three, three.parameters.vector({"torque_ripple_harmonics_amplitude": 0.5,
                                                      "torque_ripple_harmonics_ratio2": 1.0}), experiment)[0]
     assert not np.allclose(harmonics, single, rtol=1e-3)
+
+
+@pytest.mark.parametrize("concept", ["htls", "lths"])
+def test_ujoint_stations_give_each_joint_its_own_scale_and_phase(concept, experiment):
+    base = get_model(concept)
+    shared = base.with_effects(["ujoint_kinematics"], {"ujoint_kinematics_scale": 6.0, "ujoint_kinematics_phase": 0.4})
+    stations = base.with_effects(["ujoint_stations"])
+    alike = stations.parameters.vector({"ujoint_stations_scale1": 6.0, "ujoint_stations_phase1": 0.4,
+                                        "ujoint_stations_scale2": 6.0, "ujoint_stations_phase2": 0.4})
+    np.testing.assert_array_equal(runs(stations, alike, experiment), runs(shared, shared.parameters.nominal, experiment))
+    # station 2's joint ideal (a2 = 0): its U-joint turns with its screw shaft, station 1's does not
+    only_one = runs(stations, stations.parameters.vector({"ujoint_stations_scale1": 6.0, "ujoint_stations_phase1": 0.4,
+                                                          "ujoint_stations_scale2": 0.0}), experiment)[0]
+    u1, tp1 = only_one[:, column(concept, "Omega_U1")], only_one[:, column(concept, "Omega_TP1")]
+    u2, tp2 = only_one[:, column(concept, "Omega_U2")], only_one[:, column(concept, "Omega_TP2")]
+    np.testing.assert_array_equal(u2, tp2)
+    assert np.max(np.abs(u1 - tp1)) > 1e-3 * np.max(np.abs(tp1))
+    # a phase of station 2's own moves station 2's ripple only where the shared form cannot
+    turned = runs(stations, stations.parameters.vector({"ujoint_stations_scale1": 6.0, "ujoint_stations_phase1": 0.4,
+                                                        "ujoint_stations_scale2": 6.0, "ujoint_stations_phase2": 2.0}),
+                  experiment)[0]
+    same = runs(stations, alike, experiment)[0]
+    k2 = column(concept, "Omega_U2")
+    assert np.max(np.abs(turned[:, k2] - same[:, k2])) > 1e-3 * np.max(np.abs(same[:, k2]))
+    with pytest.raises(EffectError, match="same coupling"):
+        base.with_effects(["ujoint_kinematics", "ujoint_stations"])
