@@ -29,7 +29,7 @@ import numpy as np
 
 from ema_uq.experiments import Measurement, add_noise, deploy_retract, validation
 from ema_uq.gap import diagnose
-from ema_uq.gap.selfcheck import (DEFAULT_SEED, NONE_PER_SET, SENSOR_SETS, TARGET_FALSE_ALARM, TARGET_TOP1,
+from ema_uq.gap.selfcheck import (DEFAULT_SEED, KINDS, NONE_PER_SET, SENSOR_SETS, TARGET_FALSE_ALARM, TARGET_TOP1,
                                   family_of, self_check)
 from ema_uq.gap.variants import record_channels, validation_scaled
 from ema_uq.models import get_model
@@ -77,6 +77,8 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=1, help="worker processes (results do not depend on it)")
     parser.add_argument("--quick", action="store_true", help="the 3-case subset on the first concept")
     parser.add_argument("--none-per-set", type=int, default=NONE_PER_SET)
+    parser.add_argument("--kinds", nargs="+", choices=KINDS, default=list(KINDS),
+                        help="case kinds to run (e.g. --kinds none --none-per-set 15: the false-alarm rate alone)")
     parser.add_argument("--seed", type=int, default=DEFAULT_SEED)
     parser.add_argument("--peer", action="store_true", help="also run the former circular self-check")
     parser.add_argument("--out", metavar="JSON", help="write scores and per-case table as JSON")
@@ -85,7 +87,8 @@ def main() -> None:
     concepts = ["htls", "lths"] if args.concept == "both" else [args.concept]
     load = os.getloadavg()[0]
     result = self_check(seed=args.seed, quick=args.quick, concepts=concepts, sensors=args.sensors,
-                        none_per_set=args.none_per_set, jobs=args.jobs, progress=lambda line: print(line, flush=True))
+                        none_per_set=args.none_per_set, kinds=args.kinds, jobs=args.jobs,
+                        progress=lambda line: print(line, flush=True))
     print()
     print(result.summary())
     print(f"\nper concept/sensor set: " + "; ".join(

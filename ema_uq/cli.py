@@ -742,6 +742,9 @@ def _add_gap_selfcheck(subparsers) -> None:
                    help="sensor sets: full (every output) and/or realistic (the rig's sensors); default both")
     p.add_argument("--none-per-set", type=_seed, default=5, metavar="N",
                    help="no-effect cases per concept and sensor set (default 5)")
+    p.add_argument("--kinds", nargs="+", default=["effect", "none", "out_of_catalogue"], metavar="KIND",
+                   help="case kinds to run: effect (in-catalogue variants), none, out_of_catalogue (default all); "
+                        "e.g. --kinds none --none-per-set 15 extends the false-alarm count")
     p.add_argument("--jobs", type=_seed, default=1, metavar="N",
                    help="worker processes; the results do not depend on N (default 1)")
     _add_seed(p, default=2024)
@@ -764,7 +767,7 @@ def _run_gap_selfcheck(args: argparse.Namespace) -> str:
 
     try:
         result = self_check(seed=args.seed, quick=args.quick, concepts=_names(args.concepts), sensors=_names(args.sensors),
-                            none_per_set=args.none_per_set, jobs=args.jobs,
+                            none_per_set=args.none_per_set, kinds=_names(args.kinds), jobs=args.jobs,
                             progress=None if args.quiet else progress)
     except SelfCheckError as exc:
         raise CLIError(str(exc)) from None

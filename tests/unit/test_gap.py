@@ -301,6 +301,12 @@ def test_self_check_cases_cover_every_variant_on_both_concepts_and_sensor_sets()
     quick = selfcheck.build_cases(["htls"], seed=2024, quick=True)
     assert 3 <= len(quick) <= 4 and set(quick) <= set(cases)
     assert len(selfcheck.build_cases(["lths"], sensors=["realistic"], none_per_set=0)) == len(VARIANTS)
+    # one kind alone: the same cases (seeds) as in the full list, e.g. more none cases for the false-alarm rate
+    nones = selfcheck.build_cases(seed=2024, kinds=["none"], none_per_set=8)
+    assert len(nones) == 4 * 8 and {c.kind for c in nones} == {"none"}
+    assert {c for c in cases if c.kind == "none"} < set(nones)
+    with pytest.raises(selfcheck.SelfCheckError, match="case kind 'nothing'"):
+        selfcheck.build_cases(kinds=["nothing"])
     with pytest.raises(selfcheck.SelfCheckError, match="sensor set"):
         selfcheck.build_cases(sensors=["all"])
     with pytest.raises(selfcheck.SelfCheckError, match="concept"):
@@ -345,6 +351,12 @@ def test_self_check_scores_synthetic_outcomes_with_the_strict_out_of_catalogue_r
     assert result.top1 == pytest.approx({"value": 0.6, "count": 3, "n": 5, "interval95": result.top1["interval95"]})
     assert result.false_alarm_rate == pytest.approx(0.05) and result.out_of_catalogue_rate == pytest.approx(0.6)
     assert result.met == {"top1_accuracy": False, "false_alarm_rate": True, "out_of_catalogue_flagged": False}
+    # met on the point estimate, but 1 alarm in 20 cannot show <= 0.05 at 95 %; 0 in 59 can, 0 in 58 cannot
+    assert result.demonstrated == {"top1_accuracy": False, "false_alarm_rate": False, "out_of_catalogue_flagged": False}
+    for n, shown in ((58, False), (59, True)):
+        clean = selfcheck.SelfCheckResult([_outcome("none", None, "none", None) for _ in range(n)], 5, False, 1.0)
+        assert clean.demonstrated["false_alarm_rate"] is shown and clean.demonstrated["top1_accuracy"] is False
+        assert ("shown at 95 %" in clean.summary()) is shown
     s = result.shrink                                      # signed, unclipped, right family only
     assert s["n"] == 3 and s["median"] == pytest.approx(0.7) and s["min"] == pytest.approx(-0.2)
     low, high = result.false_alarms["interval95"]
