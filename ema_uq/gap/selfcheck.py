@@ -386,9 +386,10 @@ def build_cases(concepts: Sequence[str] = CONCEPTS, *, seed: int = DEFAULT_SEED,
     extends the false-alarm count of a full run without repeating its other cases."""
     concepts, sensors = list(concepts), list(sensors)
     unknown = [k for k in kinds if k not in KINDS]
-    if unknown or not kinds:
-        raise SelfCheckError(f"unknown case kind {unknown[0]!r}; choose from {', '.join(KINDS)}" if unknown
-                             else f"give at least one case kind of {', '.join(KINDS)}")
+    if unknown:
+        raise SelfCheckError(f"unknown case kind {unknown[0]!r}; choose from {', '.join(KINDS)}")
+    if not kinds:
+        raise SelfCheckError(f"give at least one case kind of {', '.join(KINDS)}")
     for concept in concepts:
         if concept not in CONCEPTS:
             raise SelfCheckError(f"no independent variants for concept {concept!r}; choose from {', '.join(CONCEPTS)}")

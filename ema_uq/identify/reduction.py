@@ -102,24 +102,22 @@ def estimate_holding_unidentifiable(problem: FitProblem, *, method: str = "gn", 
     except SingularInformationError as exc:
         error, spent = exc, exc.n_simulations
     held, n_detect = held_parameters(problem, start)
-    for _ in range(len(problem.parameters.free_names)):
-        if not held:
-            # singular to the optimiser's forward differences only (condition just above its
-            # limit, e.g. LT/HS C_MG against the station Coulomb losses): hold the member that
-            # weighs most in the direction it reported
-            held = _held_from_direction(error, start, problem)
+    if not held:
+        # singular to the optimiser's forward differences only (condition just above its limit,
+        # e.g. LT/HS C_MG against the station Coulomb losses): hold the member that weighs most
+        # in the direction it reported, and so on while the reduced problem stays singular
+        held = _held_from_direction(error, start, problem)
+    while True:  # every pass holds one more parameter or raises
         reduced = replace(problem, parameters=problem.parameters.fixing(list(held)))
         try:
             fit = estimate(reduced, method=method, start=start, settings=settings, seed=seed)
             break
         except SingularInformationError as exc:
-            error, spent = exc, spent + exc.n_simulations
-            more = _held_from_direction(error, start, problem)
+            spent += exc.n_simulations
+            more = _held_from_direction(exc, start, problem)
             if not more or set(more) <= set(held):
                 raise
             held = {**held, **more}
-    else:
-        raise error
     combos, n_combos = identifiable_combinations(problem, fit.estimate)
     for name in held:
         fit.std[fit.names.index(name)] = np.nan
