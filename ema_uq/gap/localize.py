@@ -356,7 +356,8 @@ def shaft_ratios(model, outputs: np.ndarray, moving: np.ndarray) -> dict[str, fl
 @dataclass
 class ChannelLocalization:
     """Per-channel figures: systematic NRMSE and its share of the gap, z of its systematic energy,
-    Ljung-Box p, bias z (mean residual in σ/sqrt(n)), the largest normalised cross-correlation
+    Ljung-Box p, bias z (mean residual in σ/sqrt(n), σ the record's own noise; the largest over
+    records, Bonferroni-adjusted), the largest normalised cross-correlation
     with an input, and the least-squares delay τ [s] of the residual on the output derivative."""
 
     channel: str
@@ -645,6 +646,16 @@ def _energy(records: list[ResidualRecord], channels: tuple[str, ...], model, the
                    noise_units[:, focus], float(density[ok].mean()))
 
 
+def _combined_bias_z(biases: Sequence[float]) -> float:
+    """One bias z from the records' own: the largest in size, its two-sided p multiplied by the
+    number of records (Bonferroni) and turned back into a signed z; 0 without records."""
+    if not biases:
+        return 0.0
+    worst = max(biases, key=abs)
+    p = min(1.0, len(biases) * 2.0 * stats.norm.sf(abs(worst)))
+    return float(np.sign(worst) * stats.norm.isf(p / 2.0))
+
+
 def _channel_rows(en: _Energy) -> list[ChannelLocalization]:
     """Per-channel figures: systematic NRMSE, share, z, Ljung-Box p (Bonferroni over records),
     bias z, input cross-correlation and the delay τ."""
@@ -666,9 +677,13 @@ def _channel_rows(en: _Energy) -> list[ChannelLocalization]:
                     if np.std(u) > 0:
                         xcs.append(max_cross_correlation(ej, u, MAX_LAG))
             ev = e[valid, j]
-            biases.append(ev.mean() / (en.sigma[j] / np.sqrt(ev.size)))
+            # each record's own noise level: records of different amplitude carry different
+            # noise, and a pooled σ understates the noisier one's (a false bias)
+            sigma_record = noise_std(e[:, j:j + 1])[0]
+            if ev.size > 1 and np.isfinite(sigma_record) and sigma_record > 0:
+                biases.append(ev.mean() / (sigma_record / np.sqrt(ev.size)))
         lb_p[j] = min(pvals) * len(pvals) if pvals else np.nan
-        bias_z[j] = max(biases, key=abs) if biases else 0.0
+        bias_z[j] = _combined_bias_z(biases)
         xcorr[j] = max(xcs) if xcs else 0.0
     den = en.deriv_den
     delay = np.where(den > 0, -en.deriv_num / np.where(den > 0, den, 1.0), 0.0)

@@ -100,6 +100,31 @@ def test_white_residual_is_not_structured(htls_clean):
     assert loc.where_regimes == [] and loc.where_channels() == []
 
 
+def test_bias_is_judged_against_each_records_own_noise(htls_clean):
+    """Two records of one channel set, the first ten times noisier (a larger-amplitude profile
+    carries larger noise): a mean offset of 3.3 of its own σ/sqrt(n) is chance once two records
+    are looked at, though it is over 4 of the pooled σ/sqrt(n); 8 of its own is a bias."""
+    model, experiment, inputs, out = htls_clean
+    rng = np.random.default_rng(5)
+    n, channel = out.shape[0], model.outputs.index("I_A")
+
+    def records(own_z):
+        noisy = out + 10 * (add_noise(out, 0.02, rng) - out)
+        noise = noisy[:, channel] - out[:, channel]
+        sigma = np.sqrt(np.mean(np.diff(noise) ** 2) / 2)
+        noisy[:, channel] += own_z * sigma / np.sqrt(n) - noise.mean()
+        quiet = add_noise(out, 0.02, rng)
+        return [ResidualRecord("noisy", experiment.time, inputs, noisy, out, out),
+                ResidualRecord("quiet", experiment.time, inputs, quiet, out, out)]
+
+    chance = localize(records(3.3), model.outputs, model, model.parameters.nominal)
+    assert "I_A" not in chance.tests["biased"], chance.reasons
+    row = next(c for c in chance.channels if c.channel == "I_A")
+    assert 2.5 < row.bias_z < 3.3          # Bonferroni over the two records
+    biased = localize(records(8.0), model.outputs, model, model.parameters.nominal)
+    assert "I_A" in biased.tests["biased"]
+
+
 def test_injected_delay_is_localised_with_its_size(htls_clean):
     model, _, _, out = htls_clean
     delayed = np.vstack([np.repeat(out[:2], 2, axis=0)[:2], out[:-2]])   # 2 samples = 20 ms late
@@ -168,6 +193,43 @@ def test_parameters_the_channels_cannot_determine_are_held():
     # without the current, k_n moves nothing; without torques only the loss totals are determined
     held = _unidentifiable_parameters(FitProblem([data.select(["Omega", "y1", "y2"])]), nominal)
     assert held[0] == "k_n" and len(held) >= 10 and not {"J", "p_ACE", "p_PCE"} & set(held)
+
+
+def test_held_out_tests_allow_for_the_fits_own_estimation_error():
+    """Held-out data made 2 standard errors off the fit along its least certain direction: the
+    adjustment moves the prediction by the posterior mean of that error, about half of it where
+    the held-out record is as informative as the estimation record (the prior keeps the rest).
+    A current offset, only partly like a parameter error, keeps most of its size."""
+    from dataclasses import replace
+
+    from ema_uq.gap import attribute as A
+
+    base = get_model("htls")
+    est = synthesize("htls", deploy_retract(), noise=0.02, seed=61)
+    val = synthesize("htls", validation(), noise=0.02, seed=62)
+    strategy = A.strategy_for(base)
+    run = A._Diagnosis(strategy, strategy.settings, A._split([est], [val], strategy, strategy.settings), base,
+                       A._catalogue(base), lambda line: None, seed=61)
+    fit = A._fit_nominal(run)[0].fit
+    records = run.records(base, fit.estimate, held=True)
+    evals, evecs = np.linalg.eigh(fit.covariance)
+    off = fit.estimate.copy()
+    off[fit.free] += 2.0 * np.sqrt(evals[-1]) * evecs[:, -1]
+    shifted = run.records(base, off, held=True)
+    noise = [r.residual for r in records]
+    moved = [replace(r, observed=s.predicted + e) for r, s, e in zip(records, shifted, noise)]
+    adjusted = run.without_estimation_error(base, fit, moved)
+    error_before = np.concatenate([m.residual - e for m, e in zip(moved, noise)])
+    error_after = np.concatenate([a.residual - e for a, e in zip(adjusted, noise)])
+    assert np.sqrt(np.mean(error_after ** 2)) < 0.6 * np.sqrt(np.mean(error_before ** 2))
+
+    channel = run.data.held_channels.index("I_A")
+    offset = np.zeros(len(run.data.held_channels))
+    offset[channel] = 0.01 * run.data.held_spread[channel]
+    biased = [replace(r, observed=r.observed + offset) for r in records]
+    kept = run.without_estimation_error(base, fit, biased)
+    residual_mean = np.mean(np.concatenate([k.residual - e for k, e in zip(kept, noise)])[:, channel])
+    assert residual_mean > 0.6 * offset[channel]
 
 
 # --------------------------------------------------------------------------------------
