@@ -65,9 +65,11 @@ Procedure (``diagnose``):
    selection shrink is ≥ ``SHRINK_CONFIDENT`` (or the gap insignificant) and the augmented model's
    residual passes every residual test of the localisation, on estimation and held-out
    data; else ``low``.
-   Otherwise ``unexplained`` when the nominal residual is structured (Ljung-Box, bias,
-   input cross-correlation, common error factors or systematic energy, family-wise level
-   0.001) on the estimation or the held-out data, or the gap on the selection part is
+   Otherwise ``unexplained`` when the nominal residual is structured (Ljung-Box, bias against
+   each record's own noise, input cross-correlation, common error factors or systematic
+   energy, family-wise level 0.001) on the estimation data, or on the held-out data less the
+   prediction error the fit's own parameter uncertainty explains
+   (:meth:`_Diagnosis.without_estimation_error`), or the gap on the selection part is
    significant; else ``none``: the noise explains the residual.
    The winner's figures (``gap.after``, ``effect_parameters``, ``localization_after``) are
    those of the best-ranked candidate whatever the verdict. GAP.json ``gap``: ``before`` and
