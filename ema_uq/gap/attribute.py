@@ -121,6 +121,9 @@ SIGNATURE_WEIGHT = _DEFAULT.signature_weight
 Z_HELD_OUT = 5.0
 PHASE_STARTS = statistics.PHASE_STARTS
 MAX_GRID = statistics.MAX_GRID
+# a held-out prediction this many times the measured RMS (or not finite) has diverged: the
+# candidate's fit is unstable away from the estimation profile and cannot be scored
+DIVERGED_RELATIVE = 1e6
 SINGULAR_RELATIVE = 1e-10
 SHRINK_BLOCKS = 20          # contiguous blocks of the scoring part resampled for the shrink's standard error
 SHRINK_REPLICATES = 400
@@ -627,7 +630,9 @@ def _score(run: _Diagnosis, reference: _Reference, name: str, effect, refit, sec
     before = reference.figures
     lr = 2.0 * (reference.objective - objective)
     delta_bic = lr - len(names) * np.log(run.n_samples)
-    after = run.parts(augmented, run.records(augmented, fit.estimate, held=True))
+    held_records = run.records(augmented, fit.estimate, held=True)
+    _check_not_diverged(held_records, run.data.held_spread)
+    after = run.parts(augmented, held_records)
     chosen, scored = (before["selection"], after["selection"]), (before["scoring"], after["scoring"])
     gain = chosen[1]["n"] * (chosen[0]["log_det_r"] - chosen[1]["log_det_r"])
     selection_shrink, shrink = (1.0 - a["gap"] / b["gap"] if b["gap"] > 0 else 0.0 for b, a in (chosen, scored))
@@ -646,13 +651,27 @@ def _score(run: _Diagnosis, reference: _Reference, name: str, effect, refit, sec
     return row, after
 
 
+def _check_not_diverged(records: Sequence[ResidualRecord], spread: np.ndarray) -> None:
+    """SimulationError when a held-out prediction is not finite or over ``DIVERGED_RELATIVE``
+    times the measured RMS of its channel."""
+    for rec in records:
+        with np.errstate(invalid="ignore", over="ignore"):
+            size = np.max(np.abs(rec.predicted) / np.where(spread > 0, spread, 1.0)) if rec.predicted.size else 0.0
+        if not np.isfinite(size) or size > DIVERGED_RELATIVE:
+            raise SimulationError(f"its prediction of {rec.name} diverges (peak {size:.3g} times the measured RMS): "
+                                  "the fit is unstable away from the estimation profile")
+
+
 def _candidate(run: _Diagnosis, reference: _Reference, name: str, effect, loc, fits: dict, **kwargs) -> CandidateScore:
-    """Refit and score one candidate (a failed refit scores -inf); its fit goes into ``fits``."""
+    """Refit and score one candidate (a failed refit, or one whose held-out prediction
+    diverges, scores -inf); its fit goes into ``fits``."""
     tc = time.perf_counter()
     try:
         # trial points that simulate to NaN have det R = NaN; the optimiser rejects them
         with np.errstate(invalid="ignore", over="ignore"):
             refit = _refit(run, reference, name, effect, **kwargs)
+        stage = "screening" if kwargs.get("screening", True) else "final"
+        row, after = _score(run, reference, name, effect, refit, time.perf_counter() - tc, stage, loc)
     except (IdentificationError, SimulationError, ParameterError, np.linalg.LinAlgError) as exc:
         # ParameterError: an effect that cannot join the selected ones (the same coupling twice)
         run.say(f"  {name}: refit failed ({exc})")
@@ -660,8 +679,6 @@ def _candidate(run: _Diagnosis, reference: _Reference, name: str, effect, loc, f
                               float("nan"), float("nan"), float("nan"), 0.0, 0,
                               message=f"refit failed: {exc}", wall_time_s=time.perf_counter() - tc,
                               family=_family(name, effect))
-    stage = "screening" if kwargs.get("screening", True) else "final"
-    row, after = _score(run, reference, name, effect, refit, time.perf_counter() - tc, stage, loc)
     run.n_sims += refit[2].n_simulations + len(run.data.held)
     fits[name] = (refit, after)
     return row

@@ -232,6 +232,23 @@ def test_held_out_tests_allow_for_the_fits_own_estimation_error():
     assert residual_mean > 0.6 * offset[channel]
 
 
+def test_a_candidate_whose_held_out_prediction_diverges_is_refused(htls_clean):
+    """A refit stable on the estimation profile can blow up on a held-out one (seen: the
+    compliant backlash at a drawn stiffness); it must fail as a candidate, not end the diagnosis."""
+    from ema_uq.gap.attribute import _check_not_diverged
+    from ema_uq.simulate import SimulationError
+
+    model, experiment, inputs, out = htls_clean
+    spread = np.sqrt(np.mean(out ** 2, axis=0))
+    _check_not_diverged([_record(htls_clean, out)], spread)
+    for bad in (np.nan, 1e9):
+        blown = out.copy()
+        blown[-1, 0] = bad * spread[0]
+        record = ResidualRecord("held-out 1", experiment.time, inputs, out, blown, blown)
+        with pytest.raises(SimulationError, match="held-out 1 diverges"):
+            _check_not_diverged([record], spread)
+
+
 # --------------------------------------------------------------------------------------
 # end-to-end diagnoses (HT/LS, restricted candidates)
 # --------------------------------------------------------------------------------------
