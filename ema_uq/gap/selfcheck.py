@@ -109,7 +109,9 @@ class CaseOutcome:
     """The diagnosis of one case: verdict, effect form and family named, confidence, the
     honest shrink (signed, unclipped; None/NaN unless ``effect``) with its standard error
     and the record it was scored on, the held-out gap before/after, the drawn variant
-    parameters (hidden from the diagnosis) and the wall time [s]."""
+    parameters (hidden from the diagnosis) and the wall time [s]. A case whose diagnosis raised
+    has verdict ``error`` and the exception in ``message``: it counts as wrong, and the other
+    cases' outcomes are kept."""
 
     case: Case
     verdict: str
@@ -124,6 +126,7 @@ class CaseOutcome:
     parameters: dict[str, float]
     wall_time_s: float
     top: list[dict[str, Any]] = field(default_factory=list)
+    message: str = ""
 
     @property
     def label(self) -> str:
@@ -149,7 +152,8 @@ class CaseOutcome:
                     int(c["seed"]))
         return cls(case, c["verdict"], c["effect"], c["family"], c["confidence"], _num(c["shrink"]),
                    _num(c["shrink_se"]), c.get("shrink_record"), _num(c["gap_before"]), _num(c["gap_after"]),
-                   dict(c.get("parameters") or {}), float(c["wall_time_s"]), list(c.get("top") or []))
+                   dict(c.get("parameters") or {}), float(c["wall_time_s"]), list(c.get("top") or []),
+                   str(c.get("message") or ""))
 
 
 def _num(value) -> float:
@@ -438,7 +442,12 @@ def run_case(case: Case, settings: DiagnosisSettings | None = None) -> CaseOutco
     """Simulate a case's records, diagnose them blind and return the outcome."""
     estimation, validation, validation2, truth = case_records(case)
     t0 = time.perf_counter()
-    result = diagnose([estimation], [validation, validation2], settings=settings, seed=case.seed)
+    try:
+        result = diagnose([estimation], [validation, validation2], settings=settings, seed=case.seed)
+    except Exception as exc:    # noqa: BLE001 - one failing case must not lose a campaign's other outcomes
+        return CaseOutcome(case, "error", None, None, "-", float("nan"), float("nan"), None, float("nan"),
+                           float("nan"), dict(truth["parameters"]), time.perf_counter() - t0,
+                           message=f"{type(exc).__name__}: {exc}")
     gap = result.gap
     top = [{"effect": c.effect, "score": c.score, "delta_bic": c.delta_bic, "held_out_gain": c.held_out_gain,
             "signature_match": c.signature_match} for c in result.ranking[:3]]
@@ -451,7 +460,8 @@ def run_case(case: Case, settings: DiagnosisSettings | None = None) -> CaseOutco
 def _progress_line(i: int, n: int, o: CaseOutcome) -> str:
     shrink = "" if not np.isfinite(o.shrink) else f", shrink {o.shrink:.2f} +- {o.shrink_se:.2f}"
     return (f"[{i}/{n}] {o.case.case_id}: {o.label} ({o.confidence}){shrink}, "
-            f"{'ok' if o.correct else 'WRONG'} (expected {o.case.expected}), {o.wall_time_s:.0f} s")
+            f"{'ok' if o.correct else 'WRONG'} (expected {o.case.expected}), {o.wall_time_s:.0f} s"
+            + (f" - {o.message}" if o.message else ""))
 
 
 def self_check(*, seed: int = DEFAULT_SEED, quick: bool = False, concepts: Sequence[str] = CONCEPTS,

@@ -451,6 +451,26 @@ def test_self_check_scores_synthetic_outcomes_with_the_strict_out_of_catalogue_r
     assert back.to_json() == result.to_json()
 
 
+def test_a_case_whose_diagnosis_raises_is_an_error_outcome_and_the_others_are_kept(monkeypatch):
+    cases = [selfcheck._case(3, "htls", "realistic", "load_friction_linear"),
+             selfcheck._case(3, "htls", "realistic", None, 0)]
+
+    def failing(measurements, validation, **kwargs):
+        if kwargs["seed"] == cases[0].seed:
+            raise np.linalg.LinAlgError("Singular matrix")
+        raise RuntimeError("second")
+
+    monkeypatch.setattr(selfcheck, "diagnose", failing)
+    lines = []
+    result = selfcheck.self_check(cases=cases, jobs=1, progress=lines.append)
+    assert [o.verdict for o in result.outcomes] == ["error", "error"]
+    assert result.outcomes[0].message == "LinAlgError: Singular matrix" and not result.outcomes[0].correct
+    assert result.top1["count"] == 0 and result.false_alarms["count"] == 1
+    assert "WRONG" in lines[0] and lines[0].endswith("LinAlgError: Singular matrix")
+    back = selfcheck.SelfCheckResult.from_json(json.loads(json.dumps(result.to_json())))
+    assert back.outcomes[1].message == "RuntimeError: second"
+
+
 def test_self_check_report_section_and_confusion_figure(tmp_path):
     from ema_uq.report.gap_figures import selfcheck_confusion
     from ema_uq.report.html import _selfcheck_section
