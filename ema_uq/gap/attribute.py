@@ -342,15 +342,11 @@ class _Diagnosis:
         cov = np.asarray(fit.covariance, dtype=float)
         if free.size == 0 or cov.shape != (free.size, free.size) or not np.all(np.isfinite(cov)):
             return list(records)
-        theta = fit.estimate
-        scale = np.where(np.abs(theta[free]) > 0, np.abs(theta[free]), 1.0)
-        h = 1e-4 * scale
-        thetas = np.repeat(theta[None], free.size + 1, axis=0)
-        thetas[1 + np.arange(free.size), free] += h
+        thetas, h, _ = _stepped_sets(fit.estimate, free, 1e-4)
         d = self.data
         per_set = _simulate_records(model, thetas, d.held, d.held_channels, d.held_names, self.strategy,
                                     share_steps=True)
-        self.n_sims += len(d.held)
+        self.n_sims += thetas.shape[0] * len(d.held)
         evals, evecs = np.linalg.eigh(0.5 * (cov + cov.T))
         root = evecs * np.sqrt(np.clip(evals, 0.0, None))            # cov = root rootᵀ, δ = root u
         a, b, unit_sens = np.eye(free.size), np.zeros(free.size), []
@@ -449,17 +445,25 @@ def _full_objective(problem: FitProblem, theta: np.ndarray, log_det_r: float) ->
                                 problem.free_index)
 
 
+def _stepped_sets(theta: np.ndarray, index: np.ndarray, relative: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Parameter sets for relative forward differences: (thetas, h, scale) with thetas row 0 =
+    ``theta`` and row 1 + i = ``theta`` with entry ``index[i]`` raised by h_i = ``relative`` x
+    scale_i, scale = |value| (1 where the value is 0)."""
+    scale = np.where(np.abs(theta[index]) > 0, np.abs(theta[index]), 1.0)
+    h = relative * scale
+    thetas = np.repeat(theta[None], index.size + 1, axis=0)
+    thetas[1 + np.arange(index.size), index] += h
+    return thetas, h, scale
+
+
 def _relevant_base(problem: FitProblem, theta: np.ndarray, predicted: np.ndarray, effect_names: Sequence[str],
                    count: int) -> list[str]:
     """The ``count`` base parameters most aliased with the effect parameters at ``theta``: largest
     |correlation| in the information metric (forward differences, one batched simulator call)."""
     params = problem.parameters
     idx = problem.free_index
-    scale = np.where(np.abs(theta[idx]) > 0, np.abs(theta[idx]), 1.0)
-    h = 1e-5 * scale
-    thetas = np.repeat(theta[None], idx.size, axis=0)
-    thetas[np.arange(idx.size), idx] += h
-    sens = (problem.predict(thetas) - predicted[None]) / (h / scale)[:, None, None]     # (p, N, m)
+    thetas, h, scale = _stepped_sets(theta, idx, 1e-5)    # the base prediction is given: row 0 not run
+    sens = (problem.predict(thetas[1:]) - predicted[None]) / (h / scale)[:, None, None]     # (p, N, m)
     residual = problem.observed - predicted
     r_inv = np.linalg.inv(residual.T @ residual / residual.shape[0])
     info = np.einsum("jkc,cd,lkd->jl", sens, r_inv, sens)
@@ -479,11 +483,9 @@ def _unidentifiable_parameters(problem: FitProblem, theta: np.ndarray) -> list[s
     gains last). E.g. k_n without a current channel, or the friction split without torque channels."""
     names = problem.parameters.names
     idx = problem.free_index
-    h = 1e-4 * np.where(np.abs(theta[idx]) > 0, np.abs(theta[idx]), 1.0)
-    thetas = np.repeat(theta[None], idx.size + 1, axis=0)     # row 0: the base, which sets the steps
-    thetas[1 + np.arange(idx.size), idx] += h
-    predicted = problem.predict(thetas, share_steps=True)
-    sens = (predicted[1:] - predicted[0][None]) / (h / np.where(np.abs(theta[idx]) > 0, np.abs(theta[idx]), 1.0))[:, None, None]
+    thetas, h, scale = _stepped_sets(theta, idx, 1e-4)
+    predicted = problem.predict(thetas, share_steps=True)     # row 0, the base, sets the steps
+    sens = (predicted[1:] - predicted[0][None]) / (h / scale)[:, None, None]
     residual = problem.observed - predicted[0]
     r_inv = np.linalg.inv(residual.T @ residual / residual.shape[0])
     info = np.einsum("jkc,cd,lkd->jl", sens, r_inv, sens)
@@ -656,7 +658,7 @@ def _check_not_diverged(records: Sequence[ResidualRecord], spread: np.ndarray) -
     times the measured RMS of its channel."""
     for rec in records:
         with np.errstate(invalid="ignore", over="ignore"):
-            size = np.max(np.abs(rec.predicted) / np.where(spread > 0, spread, 1.0)) if rec.predicted.size else 0.0
+            size = np.max(np.abs(rec.predicted) / np.where(spread > 0, spread, 1.0))
         if not np.isfinite(size) or size > DIVERGED_RELATIVE:
             raise SimulationError(f"its prediction of {rec.name} diverges (peak {size:.3g} times the measured RMS): "
                                   "the fit is unstable away from the estimation profile")
