@@ -249,6 +249,62 @@ def test_a_candidate_whose_held_out_prediction_diverges_is_refused(htls_clean):
             _check_not_diverged([record], spread)
 
 
+def test_a_gauss_newton_fit_that_stalls_is_finished_by_levenberg_marquardt(monkeypatch):
+    """A Gauss-Newton fit stopping early unconverged (here: cut after one iteration, as when its
+    step halving runs out) must not be the reference: the candidates would be credited with
+    finishing its descent. The robust fit continues it to the full fit's minimum."""
+    from dataclasses import replace
+
+    from ema_uq.gap import attribute as A
+    from ema_uq.identify import Settings
+
+    data = synthesize("htls", deploy_retract().slice(0, 800), noise=0.02, seed=3)
+    problem = FitProblem([data])
+    start = problem.parameters.nominal * 1.3
+    settings = Settings(tolerance=1e-6, max_iterations=20)
+    full = A.estimate(problem, method="gn", start=start, settings=settings)
+    real = A.estimate
+
+    def stalling(problem, method, start, settings, **kwargs):
+        if method == "gn":
+            settings = replace(settings, max_iterations=1)
+        return real(problem, method=method, start=start, settings=settings, **kwargs)
+
+    monkeypatch.setattr(A, "estimate", stalling)
+    stalled = stalling(problem, "gn", start, settings)
+    assert not stalled.converged and stalled.objective > full.objective + 100.0
+    fit = A._robust_estimate(problem, start, settings)
+    assert fit.converged and fit.iterations > 1 and "Levenberg-Marquardt after Gauss-Newton" in fit.message
+    assert fit.objective == pytest.approx(full.objective, abs=1.0)
+    assert fit.n_simulations > stalled.n_simulations
+
+
+def test_the_start_profile_finds_a_magnitude_between_grid_points():
+    """A magnitude twice the largest grid point (10 x start): the grid's best is 2x off, one
+    pass of the fine profile lands within its 1.16x steps of the truth."""
+    from ema_uq.gap import attribute as A
+
+    base = get_model("htls")
+    model = base.with_effects(["load_dependent_friction"])
+    effect = base.effect_catalogue["load_dependent_friction"]
+    mu = 20.0 * effect.start["load_dependent_friction_mu"]
+    theta = model.parameters.vector({"load_dependent_friction_mu": mu})
+    data = synthesize(model, deploy_retract().slice(0, 1500), theta, noise=0.02, seed=5)
+    problem = FitProblem([data], model=model)
+    names = ["load_dependent_friction_mu"]
+    grid = A._start_grid(model, base.parameters.as_dict(base.parameters.nominal), effect, names)
+    predicted = problem.predict(grid)
+    objectives = [problem.objective(problem.observed - predicted[i], grid[i, problem.free_index])[0]
+                  for i in range(grid.shape[0])]
+    best = int(np.argmin(objectives))
+    i = model.parameters.index(names[0])
+    assert grid[best, i] == pytest.approx(mu / 2)
+    start, prediction, sims = A._profiled_start(problem, grid[best], predicted[best], objectives[best],
+                                                model.parameters, names, A.statistics.START_MULTIPLES)
+    assert sims == A.PROFILE_POINTS and abs(np.log(start[i] / mu)) < np.log(1.17)
+    np.testing.assert_array_equal(prediction, problem.predict(start[None])[0])
+
+
 # --------------------------------------------------------------------------------------
 # end-to-end diagnoses (HT/LS, restricted candidates)
 # --------------------------------------------------------------------------------------
