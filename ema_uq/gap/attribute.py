@@ -29,11 +29,14 @@ Procedure (``diagnose``):
    (``Model.with_effects``) is refitted by ML, warm-started from the nominal estimate for
    the base parameters and from ``Effect.start`` for the effect parameters (the best of a
    small start grid — magnitudes at 0.3, 1, 3 and 10 times ``Effect.start``, phases at four
-   points of a turn — evaluated in one batched simulator call). Screening refit: the effect
+   points of a turn — evaluated in one batched simulator call, then refined by one pass of
+   fine 1-D profiles of each non-phase effect parameter between its neighbouring grid points,
+   ``PROFILE_POINTS`` (17) each). Screening refit: the effect
    parameters and the ``screen_base_parameters`` (6) base parameters most aliased with them
    (largest |correlation| in the information matrix at the start) are free, Gauss-Newton
    capped at ``candidate_max_iterations`` (Levenberg-Marquardt when a Gauss-Newton step goes
-   singular). Final refit of the ``final_candidates`` (2) best-screened candidates: every
+   singular, or finishing a Gauss-Newton fit whose step halving ran out early, as for the
+   nominal fit). Final refit of the ``final_candidates`` (2) best-screened candidates: every
    parameter free, from the screening estimate, capped at ``final_max_iterations``; their
    scores and Cramér-Rao std come from it (``CandidateScore.stage``), the others' from the
    screening (a lower bound of what a full refit reaches).
