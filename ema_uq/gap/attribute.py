@@ -461,7 +461,8 @@ def _profiled_start(problem: FitProblem, start: np.ndarray, prediction: np.ndarr
         i, parameter = params.index(name), params[name]
         if (parameter.unit == "rad" and "phase" in name) or start[i] <= 0 or step <= 1.0:
             continue
-        values = np.clip(start[i] * np.geomspace(1.0 / step, step, PROFILE_POINTS), parameter.lower, parameter.upper)
+        values = np.unique(np.clip(start[i] * np.geomspace(1.0 / step, step, PROFILE_POINTS),
+                                   parameter.lower, parameter.upper))
         trial = np.repeat(start[None], values.size, axis=0)
         trial[:, i] = values
         predicted = problem.predict(trial)

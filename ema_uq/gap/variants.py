@@ -43,9 +43,9 @@ How the variants differ from the catalogue's forms
     Thiran all-pass IIR filter (order <= 3, maximally flat group delay tau; phase-dispersive
     like a real sensor filter). tau is drawn away from multiples of the sample time.
 ``shaft_compliance_two_mass`` (``shaft_compliance``)
-    Catalogue: modal form with load fraction 0.5 (HT/LS) / 0.3 (LT/HS), period and damping
-    ratio. Here: absolute coordinates (load speed and angle as states), the load share drawn
-    from 0.6-0.8 (HT/LS) / 0.45-0.65 (LT/HS), mode frequency [Hz] and damping ratio.
+    Catalogue: modal form with period, damping ratio and load fraction. Here: absolute
+    coordinates (load speed and angle as states), the load share drawn from 0.6-0.8 (HT/LS) /
+    0.45-0.65 (LT/HS), mode frequency [Hz] and damping ratio.
 ``load_friction_linear`` / ``load_friction_power`` (``load_dependent_friction``)
     Catalogue: C_TS + mu r |F|. Here: mu r (sqrt(F^2 + F0^2) - F0), or a power law
     mu r F_ref (|F|_s / F_ref)^1.2 - mu r F_ref (F0 / F_ref)^1.2, |F|_s = sqrt(F^2 + F0^2),

@@ -45,7 +45,6 @@ FX_BACKLASH_RELAXATION = LAYOUT["backlash_relaxation"]      # [s]
 FX_BACKLASH_SOFTNESS = LAYOUT["backlash_softness"]          # [1]
 FX_STRIBECK = LAYOUT["stribeck"]
 FX_COMPLIANCE = LAYOUT["shaft_compliance"]
-FX_LOAD_FRACTION = LAYOUT["shaft_compliance_load_fraction"]  # [1]
 FX_MODE_OMEGA_MAX = LAYOUT["shaft_compliance_mode_omega_max"]  # [rad/s]
 FX_UJOINT = LAYOUT["ujoint_kinematics"]
 FX_UJOINT_STATIONS = LAYOUT["ujoint_stations"]
@@ -289,7 +288,8 @@ def evaluate_htls_effects(x, u, th, c, dx, y):
     p_ld = int(c[t + FX_LOAD_FRICTION])
     p_tr = int(c[t + FX_RIPPLE])
     relaxation, softness = c[t + FX_BACKLASH_RELAXATION], c[t + FX_BACKLASH_SOFTNESS]
-    load_fraction, omega_max = c[t + FX_LOAD_FRACTION], c[t + FX_MODE_OMEGA_MAX]
+    omega_max = c[t + FX_MODE_OMEGA_MAX]
+    load_fraction = th[p_sc + 2] if p_sc >= 0 else 0.0
     periods = c[t + FX_RIPPLE_PERIODS]
     p_np = int(c[t + FX_NUT_PLAY])
     x_np = int(c[t + FX_NUT_PLAY + 1])
@@ -414,7 +414,8 @@ def evaluate_lths_effects(x, u, th, c, dx, y):
     p_ld = int(c[t + FX_LOAD_FRICTION])
     p_tr = int(c[t + FX_RIPPLE])
     relaxation, softness = c[t + FX_BACKLASH_RELAXATION], c[t + FX_BACKLASH_SOFTNESS]
-    load_fraction, omega_max = c[t + FX_LOAD_FRACTION], c[t + FX_MODE_OMEGA_MAX]
+    omega_max = c[t + FX_MODE_OMEGA_MAX]
+    load_fraction = th[p_sc + 2] if p_sc >= 0 else 0.0
     periods = c[t + FX_RIPPLE_PERIODS]
     p_np = int(c[t + FX_NUT_PLAY])
     x_np = int(c[t + FX_NUT_PLAY + 1])

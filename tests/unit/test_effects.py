@@ -72,7 +72,7 @@ def test_catalogue_is_the_model_spec_table():
     for name, effect in CATALOGUE.items():
         assert effect.family == FAMILY_FORMS.get(name, name) and effect.family in SPEC_EFFECTS
         assert isinstance(effect, Effect) and effect.name == name and effect.description
-        assert 1 <= len(effect.parameters) <= (2 if name in SPEC_EFFECTS else 6)
+        assert 1 <= len(effect.parameters) <= (3 if name in SPEC_EFFECTS else 6)
         assert all(p.name.startswith(name + "_") and p.free for p in effect.parameters)
         assert set(effect.start) == set(effect.off) == set(effect.parameter_names)
         for p in effect.parameters:
@@ -135,7 +135,9 @@ def test_kernel_layout_and_error_scales_come_from_the_effect_definitions():
     assert aug.states[base.n_states:] == ("shaft_twist", "shaft_twist_rate", "backlash_b")
     assert aug.state_scales == base.state_scales + (0.01, 1.0, 0.1)
     table = aug.kernel_constants()[-LAYOUT_SIZE:]
-    assert table[LAYOUT["shaft_compliance_load_fraction"]] == 0.3 and table[LAYOUT["backlash_relaxation"]] == 1e-3
+    assert table[LAYOUT["shaft_compliance_mode_omega_max"]] == 1.0 / 2e-4 and table[LAYOUT["backlash_relaxation"]] == 1e-3
+    assert aug.parameters.names[len(base.parameters):][:3] == (
+        "shaft_compliance_period", "shaft_compliance_zeta", "shaft_compliance_load_fraction")
     assert table[LAYOUT["backlash"] + 1] == base.n_states + 2 and table[LAYOUT["stribeck"]] == -1.0
     thetas = np.repeat(aug.parameters.nominal[None], 2, axis=0)
     thetas[1, aug.parameters.index("backlash_delta")] = 0.0      # the play's state feeds nothing: frozen
@@ -422,21 +424,22 @@ def test_shaft_mode_matches_an_independent_two_inertia_model(concept):
     two-inertia model written from scratch: J_m dΩm = -p Ωm - T, J_L dΩL = T - B_L ΩL,
     T = k q + d dq, k = J_red ω², d = 2 ζ ω J_red (motor speed loop p; position loop ignored)."""
     period, zeta = 0.03, 0.05
+    fraction = {"htls": 0.7, "lths": 0.6}[concept]     # not the old fixed splits (0.5, 0.3)
     aug = get_model(concept).with_effects(["shaft_compliance"], {"shaft_compliance_period": period,
-                                                                 "shaft_compliance_zeta": zeta})
+                                                                 "shaft_compliance_zeta": zeta,
+                                                                 "shaft_compliance_load_fraction": fraction})
     th, c = aug.parameters.nominal, aug.kernel_constants()
     names = aug.parameters.names
     J = th[names.index("J")]
     if concept == "htls":
         evaluate, x = evaluate_htls_effects, np.array([30.0, 0.05, 0.051, 3.7, 0.0, 0.0])
-        fraction, p_speed = 0.5, th[names.index("p_PCE")]
+        p_speed = th[names.index("p_PCE")]
         u = np.array([0.155, -9000.0, -7000.0, 0.0])  # control unsaturated
         i1 = i2 = 2.0
         b_load = sum((th[names.index(f"B_TS{k}")] / math.cos(b) + th[names.index(f"B_U{k}")]) / 4.0
                      + th[names.index(f"B_TP{k}")] / 2.0 for k, b in ((1, 3 * DEG), (2, 5 * DEG)))
     else:
         evaluate, x = evaluate_lths_effects, np.array([20.0, 600.0, 0.05, 0.051, 3.7, 0.0, 0.0])
-        fraction = 0.3
         k_n, r_a, l_a = th[names.index("k_n")], th[names.index("R_A")], th[names.index("L_A")]
         p_speed = None  # the current loop is part of the model below
         u = np.array([0.155, -9000.0, -7000.0, 0.0])  # control unsaturated
@@ -588,7 +591,9 @@ def test_gap_json_carries_the_family_beside_the_form():
 @pytest.mark.parametrize("concept", ["htls", "lths"])
 def test_compliant_backlash_without_play_is_the_shaft_compliance(concept, experiment):
     base = get_model(concept)
-    plain = base.with_effects(["shaft_compliance"], {"shaft_compliance_period": 0.025, "shaft_compliance_zeta": 0.1})
+    held = CATALOGUE["backlash_compliant"].constants[concept]["load_fraction"]     # the coupling's own split
+    plain = base.with_effects(["shaft_compliance"], {"shaft_compliance_period": 0.025, "shaft_compliance_zeta": 0.1,
+                                                     "shaft_compliance_load_fraction": held})
     played = base.with_effects(["backlash_compliant"], {"backlash_compliant_delta": 0.0,
                                                         "backlash_compliant_period": 0.025})
     np.testing.assert_array_equal(runs(played, played.parameters.nominal, experiment),
