@@ -429,6 +429,11 @@ def _effect_parameter_names(augmented, base) -> list[str]:
     return [n for n in augmented.parameters.names if n not in base.parameters.names]
 
 
+def _is_phase(name: str, parameter) -> bool:
+    """An angle on a turn (its start grid spans the turn, not multiples of the start)."""
+    return parameter.unit == "rad" and "phase" in name
+
+
 def _start_grid(augmented, base_values, effect, names: Sequence[str],
                 multiples: Sequence[float] = statistics.START_MULTIPLES) -> np.ndarray:
     """Full start vectors (n_starts, n_params): base parameters at ``base_values`` (the reference
@@ -439,7 +444,7 @@ def _start_grid(augmented, base_values, effect, names: Sequence[str],
     centre = params.vector({**{k: v for k, v in base_values.items() if k in params},
                             **{n: start[n] for n in names if n in start}})
     values = [statistics.start_values(centre[params.index(n)], params[n].lower, params[n].upper,
-                                      phase=params[n].unit == "rad" and "phase" in n, multiples=multiples,
+                                      phase=_is_phase(n, params[n]), multiples=multiples,
                                       phase_starts=PHASE_STARTS) for n in names]
     return statistics.start_grid(centre, [params.index(n) for n in names], values, MAX_GRID)
 
@@ -459,7 +464,7 @@ def _profiled_start(problem: FitProblem, start: np.ndarray, prediction: np.ndarr
     sims = 0
     for name in names:
         i, parameter = params.index(name), params[name]
-        if (parameter.unit == "rad" and "phase" in name) or start[i] <= 0 or step <= 1.0:
+        if _is_phase(name, parameter) or start[i] <= 0 or step <= 1.0:
             continue
         values = np.unique(np.clip(start[i] * np.geomspace(1.0 / step, step, PROFILE_POINTS),
                                    parameter.lower, parameter.upper))
