@@ -453,35 +453,42 @@ def _profiled_start(problem: FitProblem, start: np.ndarray, prediction: np.ndarr
                     params, names: Sequence[str], multiples: Sequence[float]) -> tuple[np.ndarray, np.ndarray, int]:
     """The grid's best start refined by one pass of fine 1-D profiles: each effect parameter in
     turn at ``PROFILE_POINTS`` geometric steps from its value over to its neighbouring grid
-    points (÷ and × the grid's widest step), the others held, the best point kept. Why: the objective of a play is ragged at
-    finer spacing than the grid's factor of 3 (contact switches a step earlier or later), and
-    Gauss-Newton stops in the first dip: an LT/HS nut play of the seed-2 self-check has its
+    points (÷ and × the grid's widest step), the others held, the best point kept. Why: the
+    objective of a play is ragged at finer spacing than the grid's factor of 3 (contact
+    switches a step earlier or later), and Gauss-Newton stops in the first dip: an LT/HS nut play of the seed-2 self-check has its
     profile minimum at 2.2x the best grid point, and the refit from that point stopped at 1x.
     Effects with a phase are left at the grid point: an amplitude profiled at a grid phase
     settles where that phase is least wrong, and the refit from there stopped in a worse
     minimum (seed-2 HT/LS ripple with harmonics: ΔBIC 2 549 against 11 333 from the grid).
     Returns (start, its prediction, simulations run)."""
-    if any(_is_phase(name, params[name]) for name in names):
-        return start, prediction, 0
     ordered = np.sort(np.asarray(multiples, dtype=float))
     step = float(np.max(ordered[1:] / ordered[:-1])) if ordered.size > 1 else 1.0
+    if step <= 1.0 or any(_is_phase(name, params[name]) for name in names):
+        return start, prediction, 0
     sims = 0
     for name in names:
         i, parameter = params.index(name), params[name]
-        if start[i] <= 0 or step <= 1.0:
+        if start[i] <= 0:
             continue
         values = np.unique(np.clip(start[i] * np.geomspace(1.0 / step, step, PROFILE_POINTS),
                                    parameter.lower, parameter.upper))
         trial = np.repeat(start[None], values.size, axis=0)
         trial[:, i] = values
-        predicted = problem.predict(trial)
+        k, score, predicted = _best_point(problem, trial)
         sims += values.size
-        scores = [problem.objective(problem.observed - predicted[k], trial[k, problem.free_index])[0]
-                  for k in range(values.size)]
-        k = int(np.argmin(np.where(np.isfinite(scores), scores, np.inf)))
-        if scores[k] < objective:
-            start, prediction, objective = trial[k], predicted[k], scores[k]
+        if score < objective:
+            start, prediction, objective = trial[k], predicted[k], score
     return start, prediction, sims
+
+
+def _best_point(problem: FitProblem, thetas: np.ndarray) -> tuple[int, float, np.ndarray]:
+    """(index, V, predictions of all sets) of the set of ``thetas`` with the lowest objective,
+    one batched simulator call; sets that simulate to NaN count as infinitely bad."""
+    predicted = problem.predict(thetas)
+    objectives = np.array([problem.objective(problem.observed - predicted[i], thetas[i, problem.free_index])[0]
+                           for i in range(thetas.shape[0])])
+    best = int(np.argmin(np.where(np.isfinite(objectives), objectives, np.inf)))
+    return best, float(objectives[best]), predicted
 
 
 def _full_objective(problem: FitProblem, theta: np.ndarray, log_det_r: float) -> float:
@@ -606,11 +613,8 @@ def _refit(run: _Diagnosis, reference: _Reference, name: str, effect, start: np.
     n_extra = 0
     if start is None:
         grid = _start_grid(augmented, reference.fit.as_dict(), effect, names, run.strategy.start_multiples)
-        predicted = problem.predict(grid)
-        objectives = [problem.objective(problem.observed - predicted[i], grid[i, problem.free_index])[0]
-                      for i in range(grid.shape[0])]
-        best = int(np.argmin(np.where(np.isfinite(objectives), objectives, np.inf)))
-        start, start_prediction, sims = _profiled_start(problem, grid[best], predicted[best], objectives[best],
+        best, objective, predicted = _best_point(problem, grid)
+        start, start_prediction, sims = _profiled_start(problem, grid[best], predicted[best], objective,
                                                         augmented.parameters, names, run.strategy.start_multiples)
         n_extra += grid.shape[0] + sims
     fit_problem, cap = problem, settings.final_max_iterations
