@@ -455,8 +455,9 @@ def _profiled_start(problem: FitProblem, start: np.ndarray, prediction: np.ndarr
     turn at ``PROFILE_POINTS`` geometric steps from its value over to its neighbouring grid
     points (÷ and × the grid's widest step), the others held, the best point kept. Why: the
     objective of a play is ragged at finer spacing than the grid's factor of 3 (contact
-    switches a step earlier or later), and Gauss-Newton stops in the first dip: an LT/HS nut play of the seed-2 self-check has its
-    profile minimum at 2.2x the best grid point, and the refit from that point stopped at 1x.
+    switches a step earlier or later), and Gauss-Newton stops in the first dip: an LT/HS nut
+    play of the seed-2 self-check has its profile minimum at 2.2x the best grid point, and the
+    refit from that point stopped at 1x.
     Phases stay at their grid value (they have their own grid over the turn).
     Returns (start, its prediction, simulations run)."""
     ordered = np.sort(np.asarray(multiples, dtype=float))
