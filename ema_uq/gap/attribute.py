@@ -30,8 +30,9 @@ Procedure (``diagnose``):
    the base parameters and from ``Effect.start`` for the effect parameters (the best of a
    small start grid — magnitudes at 0.3, 1, 3 and 10 times ``Effect.start``, phases at four
    points of a turn — evaluated in one batched simulator call, then refined by one pass of
-   fine 1-D profiles of each parameter of an effect without a phase between its neighbouring
-   grid points, ``PROFILE_POINTS`` (17) each). Screening refit: the effect
+   fine 1-D profiles of each effect parameter but phases between its neighbouring grid points,
+   ``PROFILE_POINTS`` (17) each; an effect with a phase is refitted from the grid point too and
+   the better fit kept). Screening refit: the effect
    parameters and the ``screen_base_parameters`` (6) base parameters most aliased with them
    (largest |correlation| in the information matrix at the start) are free, Gauss-Newton
    capped at ``candidate_max_iterations`` (Levenberg-Marquardt when a Gauss-Newton step goes
@@ -484,10 +485,16 @@ def _best_point(problem: FitProblem, thetas: np.ndarray) -> tuple[int, float, np
     """(index, V, predictions of all sets) of the set of ``thetas`` with the lowest objective,
     one batched simulator call; sets that simulate to NaN count as infinitely bad."""
     predicted = problem.predict(thetas)
-    objectives = np.array([problem.objective(problem.observed - predicted[i], thetas[i, problem.free_index])[0]
-                           for i in range(thetas.shape[0])])
-    best = int(np.argmin(np.where(np.isfinite(objectives), objectives, np.inf)))
+    objectives = [problem.objective(problem.observed - predicted[i], thetas[i, problem.free_index])[0]
+                  for i in range(thetas.shape[0])]
+    best = _finite_argmin(objectives)
     return best, float(objectives[best]), predicted
+
+
+def _finite_argmin(values: Sequence[float]) -> int:
+    """Index of the smallest value, NaN counting as infinitely large."""
+    values = np.asarray(values, dtype=float)
+    return int(np.argmin(np.where(np.isfinite(values), values, np.inf)))
 
 
 def _full_objective(problem: FitProblem, theta: np.ndarray, log_det_r: float) -> float:
@@ -598,9 +605,9 @@ def _refit(run: _Diagnosis, reference: _Reference, name: str, effect, start: np.
 
     Screening (default): start from the best point of the start grid refined by
     :func:`_profiled_start` (for an effect with a phase, from the grid point too, the better fit
-    kept), free the effect
-    parameters and the ``screen_base_parameters`` most aliased base ones, Gauss-Newton capped at
-    ``candidate_max_iterations`` (every parameter free when ``screen_base_parameters`` is None).
+    kept), free the effect parameters and the ``screen_base_parameters`` most aliased base
+    ones, Gauss-Newton capped at ``candidate_max_iterations`` (every parameter free when
+    ``screen_base_parameters`` is None).
     Otherwise (the leaders' final refit): every parameter free from ``start``, capped at
     ``final_max_iterations``. Parameters the channels cannot determine, and with ``hold_base``
     every base parameter, stay held. Returns (augmented model, effect parameter names,
@@ -629,7 +636,7 @@ def _refit(run: _Diagnosis, reference: _Reference, name: str, effect, start: np.
             starts.append((grid[best], predicted[best]))
     fits = [_screened_fit(run, problem, augmented, names, s, p, screening) for s, p in starts]
     objectives = [_full_objective(problem, f.estimate, f.log_det_r) for f in fits]
-    k = int(np.argmin(np.where(np.isfinite(objectives), objectives, np.inf)))
+    k = _finite_argmin(objectives)
     fit = fits[k]
     fit.n_simulations = sum(f.n_simulations for f in fits) + n_extra
     return augmented, names, fit, objectives[k]
@@ -637,16 +644,15 @@ def _refit(run: _Diagnosis, reference: _Reference, name: str, effect, start: np.
 
 def _screened_fit(run: _Diagnosis, problem: FitProblem, augmented, names: Sequence[str], start: np.ndarray,
                   start_prediction: np.ndarray | None, screening: bool) -> FitResult:
-    """One refit of :func:`_refit` from ``start`` (its prediction given when known)."""
+    """One refit of :func:`_refit` from ``start``; ``start_prediction`` (the simulated outputs
+    there, known from the start search) picks the base parameters a screening refit frees, and
+    is None for the final refit, which frees every parameter."""
     settings, base, fixed = run.settings, run.root, run.fixed
     fit_problem, cap, n_extra = problem, settings.final_max_iterations, 0
     if screening:
         cap = settings.candidate_max_iterations
         count = settings.screen_base_parameters
         if count is not None and count < len(base.parameters) and not run.strategy.hold_base:
-            if start_prediction is None:
-                start_prediction = problem.predict(start[None])[0]
-                n_extra += 1
             keep = [n for n in _relevant_base(problem, start, start_prediction, names, count + len(fixed))
                     if n not in fixed][:count]
             n_extra += problem.free_index.size
