@@ -16,7 +16,8 @@ catalogue's nominal magnitudes from nominal base parameters (one case per effect
 no-effect case, full outputs), scored by the same rules.
 
 Usage: python benchmarks/gap.py [--concept htls|lths|both] [--sensors full realistic] [--jobs N]
-                                [--quick] [--none-per-set N] [--seed N] [--peer] [--out JSON]
+                                [--quick] [--none-per-set N] [--kinds ...] [--none-from K] [--seed N]
+                                [--peer] [--out JSON]
 """
 from __future__ import annotations
 
@@ -79,6 +80,9 @@ def main() -> None:
     parser.add_argument("--none-per-set", type=int, default=NONE_PER_SET)
     parser.add_argument("--kinds", nargs="+", choices=KINDS, default=list(KINDS),
                         help="case kinds to run (e.g. --kinds none --none-per-set 15: the false-alarm rate alone)")
+    parser.add_argument("--none-from", type=int, default=0, metavar="K",
+                        help="number the no-effect cases from K (--kinds none --none-from 6 --none-per-set 9: "
+                             "cases #6-#14, adding to a run of 6 without repeating it)")
     parser.add_argument("--seed", type=int, default=DEFAULT_SEED)
     parser.add_argument("--peer", action="store_true", help="also run the former circular self-check")
     parser.add_argument("--out", metavar="JSON", help="write scores and per-case table as JSON")
@@ -87,7 +91,7 @@ def main() -> None:
     concepts = ["htls", "lths"] if args.concept == "both" else [args.concept]
     load = os.getloadavg()[0]
     result = self_check(seed=args.seed, quick=args.quick, concepts=concepts, sensors=args.sensors,
-                        none_per_set=args.none_per_set, kinds=args.kinds, jobs=args.jobs,
+                        none_per_set=args.none_per_set, kinds=args.kinds, none_first=args.none_from, jobs=args.jobs,
                         progress=lambda line: print(line, flush=True))
     print()
     print(result.summary())

@@ -382,12 +382,13 @@ def _case(seed: int, concept: str, sensors: str, variant: str | None, none_index
 
 def build_cases(concepts: Sequence[str] = CONCEPTS, *, seed: int = DEFAULT_SEED, quick: bool = False,
                 sensors: Sequence[str] = SENSOR_SETS, none_per_set: int = NONE_PER_SET,
-                kinds: Sequence[str] = KINDS) -> list[Case]:
+                kinds: Sequence[str] = KINDS, none_first: int = 0) -> list[Case]:
     """The labelled cases: per concept x sensor set, every in-catalogue variant, ``none_per_set``
-    none cases and every out-of-catalogue variant, of the ``kinds`` asked for (``quick``:
-    :data:`QUICK_CASES` on the first concept). A case is the same whichever others are built
-    (its seed depends on its slot only): e.g. ``kinds=("none",)`` with a large ``none_per_set``
-    extends the false-alarm count of a full run without repeating its other cases."""
+    none cases (numbers ``none_first`` on) and every out-of-catalogue variant, of the ``kinds``
+    asked for (``quick``: :data:`QUICK_CASES` on the first concept). A case is the same whichever
+    others are built (its seed depends on its slot only): e.g. ``kinds=("none",)`` with
+    ``none_first`` at an earlier run's ``none_per_set`` adds none cases to its false-alarm count
+    without repeating any."""
     concepts, sensors = list(concepts), list(sensors)
     unknown = [k for k in kinds if k not in KINDS]
     if unknown:
@@ -404,6 +405,8 @@ def build_cases(concepts: Sequence[str] = CONCEPTS, *, seed: int = DEFAULT_SEED,
         raise SelfCheckError("the self-check needs at least one concept and one sensor set")
     if isinstance(none_per_set, bool) or not isinstance(none_per_set, (int, np.integer)) or none_per_set < 0:
         raise SelfCheckError(f"none_per_set must be a whole number >= 0, got {none_per_set!r}")
+    if isinstance(none_first, bool) or not isinstance(none_first, (int, np.integer)) or none_first < 0:
+        raise SelfCheckError(f"none_first must be a whole number >= 0, got {none_first!r}")
     if quick:
         cases = [_case(seed, concepts[0], s, v) for s, v in QUICK_CASES]
     else:
@@ -411,7 +414,7 @@ def build_cases(concepts: Sequence[str] = CONCEPTS, *, seed: int = DEFAULT_SEED,
         for concept in concepts:
             for s in sensors:
                 cases += [_case(seed, concept, s, v) for v, var in VARIANTS.items() if var.family is not None]
-                cases += [_case(seed, concept, s, None, k) for k in range(none_per_set)]
+                cases += [_case(seed, concept, s, None, k) for k in range(none_first, none_first + none_per_set)]
                 cases += [_case(seed, concept, s, v) for v, var in VARIANTS.items() if var.family is None]
     return [c for c in cases if c.kind in kinds]
 
@@ -466,7 +469,7 @@ def _progress_line(i: int, n: int, o: CaseOutcome) -> str:
 
 def self_check(*, seed: int = DEFAULT_SEED, quick: bool = False, concepts: Sequence[str] = CONCEPTS,
                sensors: Sequence[str] = SENSOR_SETS, none_per_set: int = NONE_PER_SET,
-               kinds: Sequence[str] = KINDS, cases: Sequence[Case] | None = None,
+               kinds: Sequence[str] = KINDS, none_first: int = 0, cases: Sequence[Case] | None = None,
                settings: DiagnosisSettings | None = None, jobs: int = 1,
                progress: Callable[[str], None] | None = None) -> SelfCheckResult:
     """Run the blind self-check and score it. ``jobs`` worker processes (spawned: a script
@@ -475,7 +478,8 @@ def self_check(*, seed: int = DEFAULT_SEED, quick: bool = False, concepts: Seque
     if isinstance(jobs, bool) or not isinstance(jobs, (int, np.integer)) or jobs < 1:
         raise SelfCheckError(f"jobs must be a whole number >= 1, got {jobs!r}")
     cases = list(cases) if cases is not None else build_cases(concepts, seed=seed, quick=quick, sensors=sensors,
-                                                              none_per_set=none_per_set, kinds=kinds)
+                                                              none_per_set=none_per_set, kinds=kinds,
+                                                              none_first=none_first)
     t0 = time.perf_counter()
     outcomes: list[CaseOutcome] = []
     if jobs == 1 or len(cases) == 1:
@@ -495,6 +499,6 @@ def self_check(*, seed: int = DEFAULT_SEED, quick: bool = False, concepts: Seque
             pool.shutdown(cancel_futures=True)
     used = {"concepts": sorted({c.concept for c in cases}, key=CONCEPTS.index),
             "sensors": sorted({c.sensors for c in cases}, key=SENSOR_SETS.index),
-            "none_per_set": none_per_set, "quick": quick, "base_perturbation": BASE_PERTURBATION,
+            "none_per_set": none_per_set, "none_first": none_first, "quick": quick, "base_perturbation": BASE_PERTURBATION,
             "kinds": [k for k in KINDS if any(c.kind == k for c in cases)]}
     return SelfCheckResult(outcomes, seed, quick, time.perf_counter() - t0, used)

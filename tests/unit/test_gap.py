@@ -472,6 +472,12 @@ def test_self_check_cases_cover_every_variant_on_both_concepts_and_sensor_sets()
     nones = selfcheck.build_cases(seed=2024, kinds=["none"], none_per_set=8)
     assert len(nones) == 4 * 8 and {c.kind for c in nones} == {"none"}
     assert {c for c in cases if c.kind == "none"} < set(nones)
+    # numbered on from an earlier run's count: the next none cases, none repeated
+    more = selfcheck.build_cases(seed=2024, kinds=["none"], none_per_set=3, none_first=8)
+    assert len(more) == 4 * 3 and not set(more) & set(nones)
+    assert set(more) < set(selfcheck.build_cases(seed=2024, kinds=["none"], none_per_set=11))
+    with pytest.raises(selfcheck.SelfCheckError, match="none_first"):
+        selfcheck.build_cases(none_first=-1)
     with pytest.raises(selfcheck.SelfCheckError, match="case kind 'nothing'"):
         selfcheck.build_cases(kinds=["nothing"])
     with pytest.raises(selfcheck.SelfCheckError, match="sensor set"):
