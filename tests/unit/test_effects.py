@@ -571,6 +571,26 @@ def test_family_defaults_to_the_effect_and_forms_of_one_family_do_not_cut_the_ma
     assert _verdict(th, close_families, True, True, Clean(), Clean())[2] == "low"
 
 
+def test_a_candidate_that_fits_far_beyond_noise_but_fails_held_out_leaves_the_gap_unexplained_not_none():
+    from ema_uq.gap.attribute import _verdict
+    from ema_uq.gap.result import CandidateScore
+    from ema_uq.gap.strategy import Thresholds
+
+    class Clean:
+        structured = False
+
+    def row(delta_bic, gain):
+        return CandidateScore("ripple", delta_bic + gain, 0.0, 0.0, float("nan"), delta_bic, delta_bic, gain, 0.5, 3,
+                              selection_shrink=0.0, family="ripple")
+
+    th = Thresholds()
+    # residual tests pass, held-out gap insignificant: the noise explains it only if no candidate fits beyond it
+    assert _verdict(th, [row(525.0, -20.0)], False, False, Clean(), Clean()) == ("unexplained", None, "high")
+    assert _verdict(th, [row(-0.8, 3.0)], False, False, Clean(), Clean()) == ("none", None, "high")
+    assert _verdict(th, [row(th.bic_min, 3.0)], False, False, Clean(), Clean())[0] == "none"
+    assert _verdict(th, [row(525.0, 400.0)], False, False, Clean(), Clean())[:2] == ("effect", "ripple")
+
+
 def test_gap_json_carries_the_family_beside_the_form():
     from ema_uq.gap.result import GapResult
 
