@@ -380,6 +380,11 @@ def _case(seed: int, concept: str, sensors: str, variant: str | None, none_index
     return case
 
 
+def _check_whole_number(name: str, value: Any, minimum: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise SelfCheckError(f"{name} must be a whole number >= {minimum}, got {value!r}")
+
+
 def build_cases(concepts: Sequence[str] = CONCEPTS, *, seed: int = DEFAULT_SEED, quick: bool = False,
                 sensors: Sequence[str] = SENSOR_SETS, none_per_set: int = NONE_PER_SET,
                 kinds: Sequence[str] = KINDS, none_first: int = 0) -> list[Case]:
@@ -403,10 +408,8 @@ def build_cases(concepts: Sequence[str] = CONCEPTS, *, seed: int = DEFAULT_SEED,
             raise SelfCheckError(f"unknown sensor set {s!r}; choose from {', '.join(SENSOR_SETS)}")
     if not concepts or not sensors:
         raise SelfCheckError("the self-check needs at least one concept and one sensor set")
-    if isinstance(none_per_set, bool) or not isinstance(none_per_set, (int, np.integer)) or none_per_set < 0:
-        raise SelfCheckError(f"none_per_set must be a whole number >= 0, got {none_per_set!r}")
-    if isinstance(none_first, bool) or not isinstance(none_first, (int, np.integer)) or none_first < 0:
-        raise SelfCheckError(f"none_first must be a whole number >= 0, got {none_first!r}")
+    _check_whole_number("none_per_set", none_per_set, 0)
+    _check_whole_number("none_first", none_first, 0)
     if quick:
         cases = [_case(seed, concepts[0], s, v) for s, v in QUICK_CASES]
     else:
@@ -475,8 +478,7 @@ def self_check(*, seed: int = DEFAULT_SEED, quick: bool = False, concepts: Seque
     """Run the blind self-check and score it. ``jobs`` worker processes (spawned: a script
     calling this with ``jobs`` > 1 needs the ``if __name__ == "__main__"`` guard) diagnose cases
     in parallel; every case is seeded on its own, so the outcomes do not depend on ``jobs``."""
-    if isinstance(jobs, bool) or not isinstance(jobs, (int, np.integer)) or jobs < 1:
-        raise SelfCheckError(f"jobs must be a whole number >= 1, got {jobs!r}")
+    _check_whole_number("jobs", jobs, 1)
     cases = list(cases) if cases is not None else build_cases(concepts, seed=seed, quick=quick, sensors=sensors,
                                                               none_per_set=none_per_set, kinds=kinds,
                                                               none_first=none_first)
@@ -499,6 +501,7 @@ def self_check(*, seed: int = DEFAULT_SEED, quick: bool = False, concepts: Seque
             pool.shutdown(cancel_futures=True)
     used = {"concepts": sorted({c.concept for c in cases}, key=CONCEPTS.index),
             "sensors": sorted({c.sensors for c in cases}, key=SENSOR_SETS.index),
-            "none_per_set": none_per_set, "none_first": none_first, "quick": quick, "base_perturbation": BASE_PERTURBATION,
+            "none_per_set": none_per_set, "none_first": none_first, "quick": quick,
+            "base_perturbation": BASE_PERTURBATION,
             "kinds": [k for k in KINDS if any(c.kind == k for c in cases)]}
     return SelfCheckResult(outcomes, seed, quick, time.perf_counter() - t0, used)
