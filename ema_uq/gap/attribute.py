@@ -51,7 +51,14 @@ Procedure (``diagnose``):
    ``SHRINK_REPLICATES`` (400) resamples of the blocks' sums of the metric's per-sample terms,
    before and after on the same resampled samples, seeded by the diagnosis seed, else 0; the
    metric's factor split is held at its fit on the whole part), and the signature match
-   m in [0, 1] (:meth:`Localization.signature_match`). Ranking score::
+   m in [0, 1] (:meth:`Localization.signature_match`). Where the records repeat one experiment
+   (``DiagnosisStrategy.replicate_prediction``: the Cranfield rig's cycle), the *reproducible
+   shrink* (before - after) / (before - ceiling) on the selection part, the ceiling being the
+   gap left by the replicate mean of the nominal model's estimation residual: the best any
+   time-invariant model learnt from the estimation records could do, so a gap that changes
+   from run to run (a drifting rig) is not asked of a fixed-parameter effect (the lack-of-fit
+   and pure-error split of regression with replicates); without replicates it is the
+   selection shrink. Ranking score::
 
        score = (ΔBIC + G) · (1 + SIGNATURE_WEIGHT · m)     (when ΔBIC + G > 0, else ΔBIC + G)
 
@@ -61,12 +68,15 @@ Procedure (``diagnose``):
    against it in the next round.
 6. Verdict:
    ``effect`` when the best candidate has ΔBIC > ``BIC_MIN``, G > ``HELD_OUT_GAIN_MIN`` and,
-   if the nominal model's gap on the selection part is significant (see below), a selection
-   shrink ≥ ``SHRINK_MIN`` (an insignificant gap is noise, and its shrink no evidence). Its
+   if the nominal model's gap on the selection part is significant (see below), a reproducible
+   shrink ≥ ``SHRINK_MIN`` (an insignificant gap is noise, and its shrink no evidence) of a
+   reproducible part that is itself significant (with replicates: the nominal's z less the
+   ceiling's passes the metric's threshold; a gap that only changes from run to run is no
+   fixed effect's). Its
    confidence is ``high`` when its score is at least ``MARGIN`` times the runner-up's (the best
    candidate of another family: ``Effect.family`` groups alternative forms of one physics, and
    the diagnosis names the family, ``GapResult.family``, beside the form, ``effect``), the
-   selection shrink is ≥ ``SHRINK_CONFIDENT`` (or the gap insignificant) and the augmented model's
+   reproducible shrink is ≥ ``SHRINK_CONFIDENT`` (or the gap insignificant) and the augmented model's
    residual passes every residual test of the localisation, on estimation and held-out
    data; else ``low``.
    Otherwise ``unexplained`` when the nominal residual is structured (Ljung-Box, bias against
@@ -78,8 +88,11 @@ Procedure (``diagnose``):
    estimation data that fails on held-out data); else ``none``: the noise explains the residual.
    The winner's figures (``gap.after``, ``effect_parameters``, ``localization_after``) are
    those of the best-ranked candidate whatever the verdict. GAP.json ``gap``: ``before`` and
-   ``after`` on all held-out data; ``shrink``, ``shrink_se`` (scored on ``shrink_record``) and
-   ``selection_shrink`` only for an ``effect`` verdict (null otherwise).
+   ``after`` on all held-out data; ``shrink``, ``shrink_se`` (scored on ``shrink_record``),
+   ``selection_shrink`` and ``reproducible_shrink`` only for an ``effect`` verdict (null
+   otherwise); with replicates also ``ceiling_gap_selection``/``ceiling_gap_scoring``,
+   ``reproducible_share`` (1 - ceiling / before on the selection part), ``reproducible_z`` and
+   ``reproducible_significant``.
 
 Gap metric: the held-out *systematic NRMSE* (:func:`ema_uq.gap.localize.systematic_nrmse`):
 per channel the model-error mean square — the part of the residual that channels share
@@ -297,6 +310,7 @@ class _Diagnosis:
     n_samples: int = 0
     n_sims: int = 0
     seed: int | None = None
+    ceiling: dict[str, float] | None = None
     resamples: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -377,6 +391,32 @@ class _Diagnosis:
     def parts(self, model, records: Sequence[ResidualRecord]) -> dict[str, dict[str, Any]]:
         """Held-out figures of the selection and the scoring part."""
         return {part: self.held_out_figures(model, records, part) for part in ("selection", "scoring")}
+
+    def ceiling_of(self, model, est_records: Sequence[ResidualRecord],
+                   held_records: Sequence[ResidualRecord]) -> dict[str, dict[str, Any]] | None:
+        """Held-out figures (selection and scoring part) of the strategy's replicate prediction,
+        a time-invariant model learnt from the estimation residual of ``model``: the gap it
+        leaves is what no fixed-parameter effect can close. None without replicates."""
+        predict = self.strategy.replicate_prediction
+        if predict is None:
+            return None
+        d = self.data
+        predicted = predict(d.estimation, [r.residual for r in est_records], d.channels, d.held, d.held_channels)
+        records = [replace(r, predicted=r.predicted + p) for r, p in zip(held_records, predicted)]
+        return self.parts(model, records)
+
+    def ceiling_gap(self, part: str) -> float | None:
+        return None if self.ceiling is None else self.ceiling[part]["gap"]
+
+    def reproducible_significant(self, before: dict[str, Any]) -> bool:
+        """Whether the part of a reference's held-out gap (figures ``before`` of one part) that
+        the replicate prediction closes stands out of the noise: its z, the reference's z less
+        the ceiling's (the same standard error), passes the metric's threshold. True without
+        replicates (the whole gap is reproducible)."""
+        if self.ceiling is None:
+            return True
+        threshold = getattr(self.strategy.metric, "z_significant", Z_HELD_OUT)
+        return bool(before["z"] - self.ceiling["selection"]["z"] > threshold)
 
     def shrink_se(self, before: dict[str, Any], after: dict[str, Any]) -> float:
         """Standard error of the shrink 1 - gap_after / gap_before on the scoring part: block
@@ -721,6 +761,7 @@ def _fit_nominal(run: _Diagnosis):
                             held=True)
     before = run.parts(base, held_records)
     before["all"] = run.held_out_figures(base, held_records)
+    run.ceiling = run.ceiling_of(base, est_records, held_records)
     run.say(f"nominal: log det R {nominal.log_det_r:.4g}, held-out gap {before['all']['gap']:.4g} "
             f"(z {before['all']['z']:.1f}); {'structured' if loc_est.structured else 'white'} residual")
     return _Reference(base, nominal, nominal.objective, before, []), loc_est, loc_held
@@ -741,19 +782,32 @@ def _score(run: _Diagnosis, reference: _Reference, name: str, effect, refit, sec
     chosen, scored = (before["selection"], after["selection"]), (before["scoring"], after["scoring"])
     gain = chosen[1]["n"] * (chosen[0]["log_det_r"] - chosen[1]["log_det_r"])
     selection_shrink, shrink = (1.0 - a["gap"] / b["gap"] if b["gap"] > 0 else 0.0 for b, a in (chosen, scored))
+    reproducible = _reproducible_shrink(chosen[0]["gap"], chosen[1]["gap"], run.ceiling_gap("selection"))
     match = loc.signature_match(tuple(getattr(effect, "signature", ()) or ()))
     raw = delta_bic + gain if th.gain_in_score else delta_bic
     score = raw * (1.0 + th.signature_weight * match) if raw > 0 else raw
+    of_reproducible = "" if run.ceiling is None else f", {reproducible:.2f} of its reproducible gap"
     run.say(f"  {name} ({stage}): dBIC {delta_bic:.1f}, held-out gain {gain:.1f}, shrink {selection_shrink:.2f} "
-            f"(selection), {shrink:.2f} (scoring), {seconds:.1f} s")
+            f"(selection{of_reproducible}), {shrink:.2f} (scoring), {seconds:.1f} s")
     row = CandidateScore(
         name, float(score), scored[0]["gap"], scored[1]["gap"], float(shrink), float(lr), float(delta_bic),
         float(gain), float(match), len(names), _parameter_table(augmented, fit, names), fit.log_det_r,
         chosen[1]["log_det_r"], chosen[1]["nrmse"], chosen[1]["z"], bool(fit.converged), fit.iterations,
         fit.n_simulations, seconds, fit.message, fit.as_dict(), stage, list(fit.free_names),
         shrink_se=run.shrink_se(*scored), selection_gap_before=chosen[0]["gap"], selection_gap_after=chosen[1]["gap"],
-        selection_shrink=float(selection_shrink), family=_family(name, effect))
+        selection_shrink=float(selection_shrink), family=_family(name, effect), reproducible_shrink=reproducible)
     return row, after
+
+
+def _reproducible_shrink(before: float, after: float, ceiling: float | None) -> float:
+    """The share of the reproducible gap, before - ``ceiling``, that a candidate closes:
+    (before - after) / (before - ceiling). Without replicates (``ceiling`` None) the plain shrink
+    1 - after / before (0 where there is no gap); NaN where the ceiling leaves nothing
+    reproducible (the whole gap changes from run to run: no fixed effect can explain it)."""
+    if ceiling is None:
+        return float(1.0 - after / before) if before > 0 else 0.0
+    reproducible = before - ceiling
+    return float((before - after) / reproducible) if reproducible > 0 else float("nan")
 
 
 def _check_not_diverged(records: Sequence[ResidualRecord], spread: np.ndarray) -> None:
@@ -818,12 +872,14 @@ def _candidate_round(run: _Diagnosis, reference: _Reference, pool: dict[str, Any
     return _ranked(ranking), fits
 
 
-def _passes(th: Thresholds, best: CandidateScore | None, significant: bool) -> bool:
-    """The ``effect`` test on the selection part: ΔBIC, held-out gain and (where the reference's
-    held-out gap is significant: an insignificant gap is noise, and its shrink no evidence) shrink."""
+def _passes(th: Thresholds, best: CandidateScore | None, significant: bool, reproducible: bool = True) -> bool:
+    """The ``effect`` test on the selection part: ΔBIC, held-out gain and, where the reference's
+    held-out gap is significant (an insignificant gap is noise, and its shrink no evidence), the
+    shrink of its reproducible part, which must itself be significant (``reproducible``: with
+    replicates, a gap that only changes from run to run is no fixed effect's)."""
     return (best is not None and best.delta_bic > th.bic_min
             and (th.held_out_gain_min is None or best.held_out_gain > th.held_out_gain_min)
-            and (best.selection_shrink >= th.shrink_min or not significant))
+            and ((reproducible and best.reproducible_shrink >= th.shrink_min) or not significant))
 
 
 def _forward_selection(run: _Diagnosis, nominal: _Reference, loc):
@@ -841,7 +897,8 @@ def _forward_selection(run: _Diagnosis, nominal: _Reference, loc):
         rounds.append(ranking)
         round_fits.append(fits)
         best = ranking[0] if ranking and np.isfinite(ranking[0].score) else None
-        if not _passes(run.strategy.thresholds, best, reference.figures["selection"]["significant"]):
+        chosen = reference.figures["selection"]
+        if not _passes(run.strategy.thresholds, best, chosen["significant"], run.reproducible_significant(chosen)):
             break
         selected.append(best.effect)
         (model, _, fit, objective), figures = fits[best.effect]
@@ -866,16 +923,16 @@ def _after_model(run: _Diagnosis, rounds, selected, round_fits):
 
 
 def _verdict(th: Thresholds, ranking: list[CandidateScore], significant: bool, structured: bool,
-             loc_after, loc_after_held) -> tuple[str, str | None, str]:
+             loc_after, loc_after_held, reproducible: bool = True) -> tuple[str, str | None, str]:
     """Step 6: (verdict, effect, confidence) from round 1 (module docstring). The runner-up of
     the margin test is the best candidate of another family: forms of one family that explain
     the gap alike are no ambiguity about what is missing."""
     best = ranking[0] if ranking and np.isfinite(ranking[0].score) else None
     rivals = [c.score for c in ranking[1:] if best is not None and c.family != best.family and np.isfinite(c.score)]
     runner_up = rivals[0] if rivals else 0.0
-    if _passes(th, best, significant):
+    if _passes(th, best, significant, reproducible):
         confident = (best.score >= th.margin * max(runner_up, 0.0)
-                     and (best.selection_shrink >= th.shrink_confident or not significant)
+                     and (best.reproducible_shrink >= th.shrink_confident or not significant)
                      and loc_after is not None and not loc_after.structured and not loc_after_held.structured)
         return "effect", best.effect, "high" if confident else "low"
     # a candidate that fits the estimation data far beyond noise (ΔBIC > BIC_MIN) but fails on
@@ -884,7 +941,7 @@ def _verdict(th: Thresholds, ranking: list[CandidateScore], significant: bool, s
     # no noise-only self-check record came near it (best ΔBIC of 60: -0.8)
     fits_beyond_noise = best is not None and best.delta_bic > th.bic_min
     if structured or significant or fits_beyond_noise:
-        return "unexplained", None, "high" if best is None or best.selection_shrink < th.shrink_min / 2 else "low"
+        return "unexplained", None, "high" if best is None or best.reproducible_shrink < th.shrink_min / 2 else "low"
     return "none", None, "high"
 
 
@@ -908,6 +965,15 @@ def _gap_summary(run: _Diagnosis, before: dict, after: dict | None, verdict: str
         "shrink_gap_before": b_score["gap"], "shrink_gap_after": a_score["gap"] if shown else None,
         "selection_shrink": (1.0 - after["selection"]["gap"] / before["selection"]["gap"]
                              if before["selection"]["gap"] > 0 else float("nan")) if shown else None,
+        # replicates: the gap a time-invariant model learnt from the estimation records leaves,
+        # the share of the nominal gap it closes (and that share's z), and the share of it the winner closes
+        **({} if run.ceiling is None else {
+            "ceiling_gap_selection": run.ceiling_gap("selection"), "ceiling_gap_scoring": run.ceiling_gap("scoring"),
+            "reproducible_share": _reproducible_shrink(before["selection"]["gap"], run.ceiling_gap("selection"), None),
+            "reproducible_z": before["selection"]["z"] - run.ceiling["selection"]["z"],
+            "reproducible_significant": run.reproducible_significant(before["selection"])}),
+        "reproducible_shrink": _reproducible_shrink(before["selection"]["gap"], after["selection"]["gap"],
+                                                    run.ceiling_gap("selection")) if shown else None,
         "z_before": b["z"], "common_factors_before": b["factors"], "significant_before": b["significant"],
         "significant_selection": before["selection"]["significant"],
         "z_after": a["z"], "nrmse_before": b["nrmse"], "nrmse_after": a["nrmse"],
@@ -981,7 +1047,8 @@ def diagnose(
     ranking = rounds[0] if rounds else []
     before = nominal.figures
     verdict, effect, confidence = _verdict(strategy.thresholds, ranking, before["selection"]["significant"],
-                                           loc_est.structured or loc_held.structured, loc_after, loc_after_held)
+                                           loc_est.structured or loc_held.structured, loc_after, loc_after_held,
+                                           run.reproducible_significant(before["selection"]))
     fit = nominal.fit
     nominal_json = {"log_det_R": fit.log_det_r, "objective": fit.objective, "converged": fit.converged,
                     "fixed": run.fixed, "iterations": fit.iterations, "n_samples": fit.n_samples,

@@ -23,8 +23,12 @@ class CandidateScore:
     held-out part that did not select the winner, ``shrink_se`` is its block-bootstrap standard
     error; ``selection_gap_*``, ``selection_shrink``, ``held_out_gain``, ``held_out_log_det_r``,
     ``nrmse_after`` (plain NRMSE, channel mean) and ``gap_z_after`` are on the selection part,
-    the one the verdict reads. ``family`` is the effect's family (``Effect.family``; the
-    effect itself when its catalogue has none).
+    the one the verdict reads. ``reproducible_shrink`` is the share of the selection part's
+    reproducible gap (the nominal gap less the ceiling a replicate mean of the estimation
+    residual leaves: :attr:`DiagnosisStrategy.replicate_prediction`) that the candidate closes,
+    NaN when nothing is reproducible; without replicates it equals ``selection_shrink``.
+    ``family`` is the effect's family (``Effect.family``; the effect itself when its catalogue
+    has none).
     """
 
     effect: str
@@ -55,10 +59,13 @@ class CandidateScore:
     selection_gap_after: float = float("nan")
     selection_shrink: float = float("nan")
     family: str = ""
+    reproducible_shrink: float | None = None
 
     def __post_init__(self) -> None:
         if not self.family:  # a catalogue without families: every effect is its own
             self.family = self.effect
+        if self.reproducible_shrink is None:  # no replicates: the whole gap is reproducible
+            self.reproducible_shrink = self.selection_shrink
 
     def to_json(self) -> dict[str, Any]:
         out = {k: _finite(v) for k, v in vars(self).items()}
@@ -251,7 +258,8 @@ def _candidate_from_json(data: Mapping[str, Any]) -> CandidateScore:
     c = dict(data)
     for key in ("score", "gap_before", "gap_after", "shrink", "likelihood_ratio", "delta_bic",
                 "held_out_gain", "signature_match", "log_det_r", "held_out_log_det_r", "nrmse_after",
-                "gap_z_after", "shrink_se", "selection_gap_before", "selection_gap_after", "selection_shrink"):
+                "gap_z_after", "shrink_se", "selection_gap_before", "selection_gap_after", "selection_shrink",
+                "reproducible_shrink"):
         if key in c:
             c[key] = float(_unfinite(c[key]))
     return CandidateScore(**c)

@@ -144,6 +144,13 @@ class DiagnosisStrategy:
         the nominal model is evaluated, not fitted, and every candidate refit frees only its
         effect's parameters.
     figure : ``(GapResult, held-out measurements) -> matplotlib Figure`` of ``ema-uq gap --figure``.
+    replicate_prediction : for records that repeat one experiment (the same cycle, run after
+        run), ``(estimation measurements, their nominal residuals, estimation channels,
+        held-out measurements, held-out channels) -> [(n_i, m)]``: the held-out residual a
+        time-invariant model could predict from the estimation records alone (the replicate
+        mean). The gap it leaves is the ceiling of every candidate's shrink (the part of the gap
+        that changes from run to run, which no fixed-parameter effect can explain); None: no
+        replicates, the whole gap counts as explainable.
     """
 
     name: str = "default"
@@ -158,6 +165,7 @@ class DiagnosisStrategy:
     reference_fit: Mapping[str, float] | None = None
     hold_base: bool = False
     figure: Callable[..., Any] = ledger_figure
+    replicate_prediction: Callable[..., list[np.ndarray]] | None = None
 
     def __post_init__(self) -> None:
         if self.where_source not in ("larger z", "held-out"):

@@ -591,6 +591,37 @@ def test_a_candidate_that_fits_far_beyond_noise_but_fails_held_out_leaves_the_ga
     assert _verdict(th, [row(525.0, 400.0)], False, False, Clean(), Clean())[:2] == ("effect", "ripple")
 
 
+def test_with_replicates_the_shrink_test_reads_the_reproducible_part_of_the_gap():
+    from ema_uq.gap.attribute import _reproducible_shrink, _verdict
+    from ema_uq.gap.result import CandidateScore, _candidate_from_json
+    from ema_uq.gap.strategy import Thresholds
+
+    class Clean:
+        structured = False
+
+    def row(selection_shrink, reproducible_shrink=None):
+        return CandidateScore("play", 900.0, 1.0, 0.5, 0.5, 500.0, 500.0, 400.0, 0.5, 1,
+                              selection_shrink=selection_shrink, reproducible_shrink=reproducible_shrink,
+                              family="play")
+
+    th = Thresholds()
+    # no replicates: the reproducible shrink is the selection shrink, and 0.3 is too little
+    assert row(0.3).reproducible_shrink == 0.3
+    assert _verdict(th, [row(0.3)], True, False, Clean(), Clean())[0] == "unexplained"
+    # a candidate closing 0.3 of a gap of which 0.4 is reproducible closes 0.75 of what it could
+    assert _reproducible_shrink(1.0, 0.7, 0.6) == pytest.approx(0.75)
+    assert _reproducible_shrink(1.0, 0.7, None) == pytest.approx(0.3)
+    assert np.isnan(_reproducible_shrink(1.0, 0.7, 1.0))          # nothing reproducible
+    assert _verdict(th, [row(0.3, 0.75)], True, False, Clean(), Clean())[:2] == ("effect", "play")
+    # ... but only where that reproducible part stands out of the noise
+    assert _verdict(th, [row(0.3, 0.75)], True, False, Clean(), Clean(), reproducible=False)[0] == "unexplained"
+    # an insignificant gap asks no shrink at all
+    assert _verdict(th, [row(0.3, float("nan"))], False, False, Clean(), Clean(), reproducible=False)[0] == "effect"
+    # GAP.json round trip: NaN is written as null and read back as NaN, not as the selection shrink
+    back = _candidate_from_json(json.loads(json.dumps(row(0.3, float("nan")).to_json())))
+    assert back.selection_shrink == 0.3 and np.isnan(back.reproducible_shrink)
+
+
 def test_gap_json_carries_the_family_beside_the_form():
     from ema_uq.gap.result import GapResult
 
