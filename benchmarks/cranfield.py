@@ -5,8 +5,11 @@ Timings: one 1620-sample block (64.8 s at 25 Hz) simulated for 1 and for 64 para
 (the batched kernel, after its first compile), nominal and with every effect switched on; the
 healthy fit (Gauss-Newton on runs 1-5 of normal.csv, 15 blocks); one diagnosis per record set.
 
-Usage: python benchmarks/cranfield.py [--quick] [--out JSON]
+Usage: python benchmarks/cranfield.py [--quick | --splits] [--out JSON]
     --quick: a reduced study (fit on runs 1-3, faults judged on runs 3-4 after fitting runs 1-2)
+    --splits: the study under six splits of the ten runs (fitted | held out), one verdict line
+        each, with and without the replicate ceiling of the shrink test: how much the verdicts
+        depend on which runs are held out, the rig drifting within each test session (~2 min)
 
 Needs the record sets ($EMA_UQ_CRANFIELD_DIR or ../shared/data/real/cranfield_linear_actuator).
 """
@@ -51,11 +54,54 @@ def simulator_timings() -> dict[str, float]:
     return out
 
 
+#: Splits of the ten runs: (healthy fit runs, healthy held-out runs, fault estimation runs,
+#: fault held-out runs); the first two healthy held-out runs fit the normal set's effects.
+SPLITS = {
+    "1-5 | 6-10": ((1, 2, 3, 4, 5), (6, 7, 8, 9, 10), (1, 2, 3, 4, 5), (6, 7, 8, 9, 10)),
+    "6-10 | 1-5": ((6, 7, 8, 9, 10), (1, 2, 3, 4, 5), (6, 7, 8, 9, 10), (1, 2, 3, 4, 5)),
+    "odd | even": ((1, 3, 5, 7, 9), (2, 4, 6, 8, 10), (1, 3, 5, 7, 9), (2, 4, 6, 8, 10)),
+    "even | odd": ((2, 4, 6, 8, 10), (1, 3, 5, 7, 9), (2, 4, 6, 8, 10), (1, 3, 5, 7, 9)),
+    "1-2 | 3-4": ((1, 2, 3), (6, 7, 8, 9), (1, 2), (3, 4)),
+    "1-3 | 8-10": ((1, 2, 3), (4, 5, 6, 7, 8), (1, 2, 3), (8, 9, 10)),
+}
+
+
+def split_table(read) -> list[dict]:
+    """Every split of :data:`SPLITS`, with the replicate ceiling and without it: per record set
+    the verdict, the best candidate, its selection and reproducible shrink and the reproducible
+    share of the gap."""
+    rows = []
+    for replicates in (True, False):
+        for label, (fit, healthy, estimation, held) in SPLITS.items():
+            study = run_study(read, fit_runs=fit, healthy_held_out_runs=healthy, estimation_runs=estimation,
+                              held_out_runs=held, replicates=replicates)
+            row = {"split": label, "replicates": replicates, "right": 0, "sets": {}}
+            for d in study.diagnoses:
+                r, verdict = d.row(), study.verdict_of(d.record_set)
+                row["right"] += verdict == EXPECTED[d.record_set]
+                row["sets"][d.record_set] = {"verdict": verdict, "best": r["best"],
+                                             "selection_shrink": r["selection_shrink"],
+                                             "reproducible_shrink": r["reproducible_shrink"],
+                                             "reproducible_share": r["reproducible_share"]}
+            rows.append(row)
+            b1 = row["sets"].get("backlash1")
+            detail = (f" ({b1['selection_shrink']:.2f} / {b1['reproducible_shrink']:.2f} of "
+                      f"{b1['reproducible_share']:.2f})" if replicates and b1 else "")
+            print(f"    {'with' if replicates else 'without':<8} {label:<11} {row['right']}/{len(EXPECTED)}  "
+                  + "  ".join(f"{name}: {v['verdict']}" + (detail if name == "backlash1" else "")
+                              for name, v in row["sets"].items()), flush=True)
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="reduced study (about 40 s instead of 60 s)")
+    parser.add_argument("--splits", action="store_true", help="the study under six run splits, with and without "
+                                                                 "the replicate ceiling")
     parser.add_argument("--out", help="also write the timings and the study as JSON")
     args = parser.parse_args()
+    if args.quick and args.splits:
+        parser.error("--quick and --splits choose different runs; give one of them")
 
     timings = simulator_timings()
     print("[[Simulator]] one block of 1620 samples")
@@ -65,6 +111,14 @@ def main() -> None:
     def read(name, runs):
         return io.read_cranfield(io.cranfield_file(name), runs=runs, channels=CHANNELS)
 
+    if args.splits:
+        print("[[Run splits]] verdicts per split (backlash1: selection shrink / reproducible shrink of the "
+              "reproducible share)")
+        rows = split_table(read)
+        if args.out:
+            with open(args.out, "w", encoding="utf-8") as fh:
+                json.dump({"simulator_s": timings, "splits": rows}, fh, indent=2, default=float)
+        return
     splits = (dict(fit_runs=(1, 2, 3), healthy_held_out_runs=(6, 7, 8, 9), estimation_runs=(1, 2), held_out_runs=(3, 4))
               if args.quick else {})
     t0 = time.perf_counter()
