@@ -310,7 +310,7 @@ class _Diagnosis:
     n_samples: int = 0
     n_sims: int = 0
     seed: int | None = None
-    ceiling: dict[str, float] | None = None
+    ceiling: dict[str, dict[str, Any]] | None = None   # held-out figures of the replicate prediction
     resamples: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -409,10 +409,10 @@ class _Diagnosis:
         return None if self.ceiling is None else self.ceiling[part]["gap"]
 
     def reproducible_significant(self, before: dict[str, Any]) -> bool:
-        """Whether the part of a reference's held-out gap (figures ``before`` of one part) that
-        the replicate prediction closes stands out of the noise: its z, the reference's z less
-        the ceiling's (the same standard error), passes the metric's threshold. True without
-        replicates (the whole gap is reproducible)."""
+        """Whether the part of a reference's gap on the selection part (its figures there,
+        ``before``) that the replicate prediction closes stands out of the noise: its z, the
+        reference's z less the ceiling's (the same standard error over the same blocks), passes
+        the metric's threshold. True without replicates (the whole gap is reproducible)."""
         if self.ceiling is None:
             return True
         threshold = getattr(self.strategy.metric, "z_significant", Z_HELD_OUT)
@@ -941,7 +941,9 @@ def _verdict(th: Thresholds, ranking: list[CandidateScore], significant: bool, s
     # no noise-only self-check record came near it (best ΔBIC of 60: -0.8)
     fits_beyond_noise = best is not None and best.delta_bic > th.bic_min
     if structured or significant or fits_beyond_noise:
-        return "unexplained", None, "high" if best is None or best.reproducible_shrink < th.shrink_min / 2 else "low"
+        # NaN: nothing reproducible, so surely no fixed effect's
+        closes_some = best is not None and best.reproducible_shrink >= th.shrink_min / 2
+        return "unexplained", None, "low" if closes_some else "high"
     return "none", None, "high"
 
 

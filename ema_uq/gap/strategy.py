@@ -150,7 +150,9 @@ class DiagnosisStrategy:
         time-invariant model could predict from the estimation records alone (the replicate
         mean). The gap it leaves is the ceiling of every candidate's shrink (the part of the gap
         that changes from run to run, which no fixed-parameter effect can explain); None: no
-        replicates, the whole gap counts as explainable.
+        replicates, the whole gap counts as explainable. The metric's ``z`` must be the mean
+        excess over its standard error (as :class:`ema_uq.cranfield.ExcessNrmse`'s), so that
+        the nominal's z less the ceiling's is the z of the reproducible part.
     """
 
     name: str = "default"

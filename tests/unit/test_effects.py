@@ -615,6 +615,9 @@ def test_with_replicates_the_shrink_test_reads_the_reproducible_part_of_the_gap(
     assert _verdict(th, [row(0.3, 0.75)], True, False, Clean(), Clean())[:2] == ("effect", "play")
     # ... but only where that reproducible part stands out of the noise
     assert _verdict(th, [row(0.3, 0.75)], True, False, Clean(), Clean(), reproducible=False)[0] == "unexplained"
+    # a gap with nothing reproducible is surely no fixed effect's
+    assert _verdict(th, [row(0.3, float("nan"))], True, False, Clean(), Clean(),
+                    reproducible=False) == ("unexplained", None, "high")
     # an insignificant gap asks no shrink at all
     assert _verdict(th, [row(0.3, float("nan"))], False, False, Clean(), Clean(), reproducible=False)[0] == "effect"
     # GAP.json round trip: NaN is written as null and read back as NaN, not as the selection shrink
