@@ -454,14 +454,28 @@ def diagnose_record_set(reference: HealthyReference, name: str, estimation: Sequ
     """The gap diagnosis of one record set against ``reference`` (base parameters held): effect
     parameters fitted on the thinned ``estimation`` blocks, verdict and shrink on ``held_out``
     (every sample: the gap metric reads short-lag products); the held-out blocks go in
-    :data:`HELD_OUT_LOAD_ORDER`, so the last, which scores the shrink, is at 40 kgf."""
+    :data:`HELD_OUT_LOAD_ORDER`, so the last, which scores the shrink, is at 40 kgf. The
+    replicate ceiling of the shrink test is the cycle mean of the healthy fit's residual on
+    every sample of ``estimation`` (the thinned copies keep one sample per phase and block)."""
     from .gap import diagnose
 
     held_out = _ordered(held_out)
-    result = diagnose(thinned(estimation, reference.stride), held_out,
-                      strategy=reference.strategy(), seed=seed, progress=progress)
+    strategy = reference.strategy()
+    if strategy.replicate_prediction is not None:
+        strategy = replace(strategy, replicate_prediction=_replicates_of(
+            estimation, residuals(reference.fit.estimate, estimation)))
+    result = diagnose(thinned(estimation, reference.stride), held_out, strategy=strategy, seed=seed,
+                      progress=progress)
     return RecordSetDiagnosis(name, result, [m.experiment.name for m in estimation],
                               [m.experiment.name for m in held_out])
+
+
+def _replicates_of(blocks: Sequence[Measurement], residual_blocks: Sequence[np.ndarray]):
+    """A ``replicate_prediction`` learnt from every sample of ``blocks`` (their ``CHANNELS``
+    residual ``residual_blocks``), whatever thinned copies the diagnosis fits."""
+    def predict(_estimation, _residuals, _channels, held_out, held_channels):
+        return cycle_replicate_prediction(blocks, residual_blocks, CHANNELS, held_out, held_channels)
+    return predict
 
 
 #: The verdict each record set of the rig should get.
