@@ -23,10 +23,10 @@ Three choices make the diagnosis's statistics fit real records:
   test session (the healthy fit's mean residual of the moving current on backlash1 is +0.004 A
   in run 1 and -0.046 A in run 7 under +20 kgf, but -0.078 A in run 1 and -0.036 A in run 9
   under +40 kgf), so part of a held-out gap changes from run to run and no fixed-parameter
-  effect can close it. The replicate mean of the
-  estimation residual (:func:`cycle_replicate_prediction`, per load and phase of the cycle)
-  is the best any time-invariant model learnt from the estimation runs could do; the verdict's
-  shrink test is read on the part of the gap it closes (the *reproducible shrink* of
+  effect can close it. The replicate mean of the estimation residual
+  (:func:`cycle_replicate_prediction`, per load and phase of the cycle, from every sample of
+  the estimation runs) is the best any time-invariant model learnt from them could do; the
+  verdict's shrink test is read on the part of the gap it closes (the *reproducible shrink* of
   :mod:`ema_uq.gap.attribute`), and that part must itself stand out of the healthy spread.
 
 Everything here is numerics on :class:`~ema_uq.experiments.Measurement` blocks (read by
@@ -338,7 +338,8 @@ class HealthyReference:
                 "converged": bool(self.fit.converged), "iterations": int(self.fit.iterations),
                 "thinning_stride": self.stride, "metric": self.metric.to_json(),
                 "nrmse_held_out": self.nrmse_held_out, "fit_blocks": self.fit_blocks,
-                "held_out_blocks": self.held_out_blocks, "wall_time_s": self.wall_time_s}
+                "held_out_blocks": self.held_out_blocks, "wall_time_s": self.wall_time_s,
+                "replicate_ceiling": self.replicates}
 
 
 def healthy_reference(fit_blocks: Sequence[Measurement], baseline_blocks: Sequence[Measurement],
