@@ -231,7 +231,7 @@ def _fill_circular(mean: np.ndarray) -> np.ndarray:
 
 def cycle_replicate_prediction(estimation: Sequence[Measurement], residuals_: Sequence[np.ndarray],
                                channels: Sequence[str], held_out: Sequence[Measurement],
-                               held_channels: Sequence[str]) -> list[np.ndarray]:
+                               held_channels: Sequence[str]) -> list[np.ndarray] | None:
     """The held-out residual a time-invariant model could predict from the estimation records
     (``DiagnosisStrategy.replicate_prediction`` of the rig): the records repeat one set-point
     cycle under a constant load, so per load and cycle the mean of the estimation residual at
@@ -240,8 +240,9 @@ def cycle_replicate_prediction(estimation: Sequence[Measurement], residuals_: Se
     phase. A fault whose effect does not change from run to run leaves only noise beside it; the
     gap that remains is the part that changes between runs (the rig drifts within a test
     session), which no fixed-parameter effect can explain. Returns (n_i, len(held_channels))
-    per held-out record; zeros for a record whose load and cycle no estimation record shares,
-    or for a channel the estimation records lack (nothing to learn from)."""
+    per held-out record (zeros for a channel the estimation records lack), or None when a
+    held-out record repeats no cycle that an estimation record at its load repeats: no ceiling
+    can then be learnt for it, and the diagnosis judges the whole gap."""
     groups: dict[tuple[float, int], dict[str, Any]] = {}
     for m, residual in zip(estimation, residuals_):
         x_sp = m["x_sp"]
@@ -265,13 +266,14 @@ def cycle_replicate_prediction(estimation: Sequence[Measurement], residuals_: Se
         period = set_point_period(m["x_sp"])
         group = groups.get((float(m["F_load"][0]), period)) if period is not None else None
         offset = None if group is None else _phase_offset(m["x_sp"], group["cycle"])
-        if offset is not None:
-            with np.errstate(invalid="ignore", divide="ignore"):
-                mean = _fill_circular(group["sum"] / np.where(group["count"] > 0, group["count"], np.nan))
-            phase = (np.arange(m.experiment.n_samples) + offset) % period
-            for j, name in enumerate(held_channels):
-                if name in channels:
-                    prediction[:, j] = mean[phase, list(channels).index(name)]
+        if offset is None:
+            return None
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = _fill_circular(group["sum"] / np.where(group["count"] > 0, group["count"], np.nan))
+        phase = (np.arange(m.experiment.n_samples) + offset) % period
+        for j, name in enumerate(held_channels):
+            if name in channels:
+                prediction[:, j] = mean[phase, list(channels).index(name)]
         out.append(prediction)
     return out
 

@@ -396,12 +396,16 @@ class _Diagnosis:
                    held_records: Sequence[ResidualRecord]) -> dict[str, dict[str, Any]] | None:
         """Held-out figures (selection and scoring part) of the strategy's replicate prediction,
         a time-invariant model learnt from the estimation residual of ``model``: the gap it
-        leaves is what no fixed-parameter effect can close. None without replicates."""
+        leaves is what no fixed-parameter effect can close. None without replicates (no
+        prediction, or one that cannot predict every held-out record)."""
         predict = self.strategy.replicate_prediction
         if predict is None:
             return None
         d = self.data
         predicted = predict(d.estimation, [r.residual for r in est_records], d.channels, d.held, d.held_channels)
+        if predicted is None:
+            self.say("no replicate ceiling: the held-out records do not repeat the estimation records' experiment")
+            return None
         records = [replace(r, predicted=r.predicted + p) for r, p in zip(held_records, predicted)]
         return self.parts(model, records)
 

@@ -146,9 +146,9 @@ class DiagnosisStrategy:
     figure : ``(GapResult, held-out measurements) -> matplotlib Figure`` of ``ema-uq gap --figure``.
     replicate_prediction : for records that repeat one experiment (the same cycle, run after
         run), ``(estimation measurements, their nominal residuals, estimation channels,
-        held-out measurements, held-out channels) -> [(n_i, m)]``: the held-out residual a
-        time-invariant model could predict from the estimation records alone (the replicate
-        mean). The gap it leaves is the ceiling of every candidate's shrink (the part of the gap
+        held-out measurements, held-out channels) -> [(n_i, m)] | None``: the held-out residual
+        a time-invariant model could predict from the estimation records alone (the replicate
+        mean), None where some held-out record repeats none of them. The gap it leaves is the ceiling of every candidate's shrink (the part of the gap
         that changes from run to run, which no fixed-parameter effect can explain); None: no
         replicates, the whole gap counts as explainable. The metric's ``z`` must be the mean
         excess over its standard error (as :class:`ema_uq.cranfield.ExcessNrmse`'s), so that

@@ -211,14 +211,17 @@ def test_replicate_prediction_is_the_cycle_mean_per_load_at_each_records_phase()
             residual[np.arange(1620) % 7 != 0] = np.nan      # thinned as the fault diagnosis fits
             estimation.append(_block(load, residual))
             residuals.append(residual)
-    held = [_block(20.0, np.zeros((1620, 2)), start=50), _block(40.0, np.zeros((1620, 2)))]
+    held = [_block(20.0, np.zeros((1620, 2)), start=50), _block(-40.0, np.zeros((1620, 2)), start=7)]
     predicted = study.cycle_replicate_prediction(estimation, residuals, CHANNELS, held, ("current",))
     assert [p.shape for p in predicted] == [(1620, 1), (1620, 1)]
     expected = np.tile(np.roll(shapes[20.0][:, 1], -50), 5)
-    # 4 records x 5 cycles thinned by 7: ~3 samples per phase, gaps interpolated
+    # 4 records x 5 cycles thinned by 7: 4 samples at 232 of the 324 phases, the others interpolated
     assert np.max(np.abs(predicted[0][:, 0] - expected)) < 0.03
     assert np.sqrt(np.mean((predicted[0][:, 0] - expected) ** 2)) < 0.01
-    assert np.array_equal(predicted[1], np.zeros((1620, 1)))    # no estimation record under 40 kgf
+    assert abs(predicted[1].mean() - 0.05) < 0.005
+    # a held-out record no estimation record repeats (no record under 40 kgf, or no cycle): no ceiling
+    for other in (_block(40.0, np.zeros((1620, 2))), _block(20.0, np.zeros((324, 2)), cycles=1)):
+        assert study.cycle_replicate_prediction(estimation, residuals, CHANNELS, held + [other], ("current",)) is None
 
 
 def _synthetic_record_sets(friction_n: float, drift_a: float):
