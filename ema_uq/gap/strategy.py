@@ -148,9 +148,10 @@ class DiagnosisStrategy:
         run), ``(estimation measurements, their nominal residuals, estimation channels,
         held-out measurements, held-out channels) -> [(n_i, m)] | None``: the held-out residual
         a time-invariant model could predict from the estimation records alone (the replicate
-        mean), None where some held-out record repeats none of them. The gap it leaves is the ceiling of every candidate's shrink (the part of the gap
-        that changes from run to run, which no fixed-parameter effect can explain); None: no
-        replicates, the whole gap counts as explainable. The metric's ``z`` must be the mean
+        mean), None where some held-out record repeats none of them. The gap it leaves is the
+        ceiling of every candidate's shrink (the part of the gap that changes from run to run,
+        which no fixed-parameter effect can explain); None (field or result): no replicates,
+        the whole gap counts as explainable. The metric's ``z`` must be the mean
         excess over its standard error (as :class:`ema_uq.cranfield.ExcessNrmse`'s), so that
         the nominal's z less the ceiling's is the z of the reproducible part.
     """
@@ -167,7 +168,7 @@ class DiagnosisStrategy:
     reference_fit: Mapping[str, float] | None = None
     hold_base: bool = False
     figure: Callable[..., Any] = ledger_figure
-    replicate_prediction: Callable[..., list[np.ndarray]] | None = None
+    replicate_prediction: Callable[..., list[np.ndarray] | None] | None = None
 
     def __post_init__(self) -> None:
         if self.where_source not in ("larger z", "held-out"):
