@@ -717,8 +717,7 @@ def _run_gap(args: argparse.Namespace) -> str:
     if args.figure:
         strategy.figure(result, validation_data or measurements).savefig(args.figure, dpi=110)
         tail = f", ledger {args.figure}"
-    what = {"effect": f"effect {result.effect} ({result.confidence} confidence)", "none": "no significant gap",
-            "unexplained": "unexplained gap"}[result.verdict]
+    what = result.headline()
     shrink = "" if result.gap["shrink"] is None else (f" (shrink {result.gap['shrink']:.2f} +/- "
                                                      f"{result.gap['shrink_se']:.2f} on the {result.gap['shrink_record']})")
     return (f"wrote {args.out}: {result.concept} verdict {what}; held-out gap {result.gap['before']:.3g} -> "

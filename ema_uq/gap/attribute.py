@@ -128,6 +128,9 @@ from ..simulate import SimulationError, simulate_batch
 from .localize import ResidualRecord, complete_runs, noise_std
 from .result import CandidateScore, GapResult
 from .strategy import DiagnosisSettings, DiagnosisStrategy, Thresholds, strategy_for
+from .structure import cell_energies, cell_masks, structure_left, where_left
+from .verdict import (effective_sample_fraction, family_probabilities, passes as _passes,
+                      reproducible_shrink as _reproducible_shrink, verdict as _open_verdict)
 
 _DEFAULT = Thresholds()
 BIC_MIN = _DEFAULT.bic_min
@@ -311,6 +314,7 @@ class _Diagnosis:
     n_sims: int = 0
     seed: int | None = None
     ceiling: dict[str, dict[str, Any]] | None = None   # held-out figures of the replicate prediction
+    masks: dict[str, list[np.ndarray]] | None = None   # cell masks of the selection part (nominal outputs)
     resamples: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -388,9 +392,19 @@ class _Diagnosis:
         return [replace(rec, predicted=rec.predicted + np.einsum("l,lnm->nm", u, su))
                 for rec, su in zip(records, unit_sens)]
 
-    def parts(self, model, records: Sequence[ResidualRecord]) -> dict[str, dict[str, Any]]:
-        """Held-out figures of the selection and the scoring part."""
-        return {part: self.held_out_figures(model, records, part) for part in ("selection", "scoring")}
+    def parts(self, model, records: Sequence[ResidualRecord], theta: np.ndarray | None = None) -> dict[str, dict[str, Any]]:
+        """Held-out figures of the selection and the scoring part; the selection part's also
+        carry ``cells``, the excess energy per cell (:mod:`ema_uq.gap.structure`), whose masks
+        come from the first model asked (the nominal one, ``theta`` its estimate)."""
+        out = {part: self.held_out_figures(model, records, part) for part in ("selection", "scoring")}
+        selection, _ = self.data.part(records, "selection")
+        if self.masks is None:
+            constants = self.strategy.constants_of(self.data.held[0])
+            self.masks = cell_masks(selection, model, theta,
+                                    model.constants_vector() if constants is None else constants)
+        out["selection"]["cells"] = cell_energies(selection, self.data.held_channels, self.data.held_spread,
+                                                  self.masks)
+        return out
 
     def ceiling_of(self, model, est_records: Sequence[ResidualRecord],
                    held_records: Sequence[ResidualRecord]) -> dict[str, dict[str, Any]] | None:
@@ -763,7 +777,7 @@ def _fit_nominal(run: _Diagnosis):
     loc_est = run.localise(base, nominal.estimate, est_records, held=False)
     loc_held = run.localise(base, nominal.estimate, run.without_estimation_error(base, nominal, held_records),
                             held=True)
-    before = run.parts(base, held_records)
+    before = run.parts(base, held_records, nominal.estimate)
     before["all"] = run.held_out_figures(base, held_records)
     run.ceiling = run.ceiling_of(base, est_records, held_records)
     run.say(f"nominal: log det R {nominal.log_det_r:.4g}, held-out gap {before['all']['gap']:.4g} "
@@ -801,17 +815,6 @@ def _score(run: _Diagnosis, reference: _Reference, name: str, effect, refit, sec
         shrink_se=run.shrink_se(*scored), selection_gap_before=chosen[0]["gap"], selection_gap_after=chosen[1]["gap"],
         selection_shrink=float(selection_shrink), family=_family(name, effect), reproducible_shrink=reproducible)
     return row, after
-
-
-def _reproducible_shrink(before: float, after: float, ceiling: float | None) -> float:
-    """The share of the reproducible gap, before - ``ceiling``, that a candidate closes:
-    (before - after) / (before - ceiling). Without replicates (``ceiling`` None) the plain shrink
-    1 - after / before (0 where there is no gap); NaN where the ceiling leaves nothing
-    reproducible (the whole gap changes from run to run: no fixed effect can explain it)."""
-    if ceiling is None:
-        return float(1.0 - after / before) if before > 0 else 0.0
-    reproducible = before - ceiling
-    return float((before - after) / reproducible) if reproducible > 0 else float("nan")
 
 
 def _check_not_diverged(records: Sequence[ResidualRecord], spread: np.ndarray) -> None:
@@ -876,16 +879,6 @@ def _candidate_round(run: _Diagnosis, reference: _Reference, pool: dict[str, Any
     return _ranked(ranking), fits
 
 
-def _passes(th: Thresholds, best: CandidateScore | None, significant: bool, reproducible: bool = True) -> bool:
-    """The ``effect`` test on the selection part: ΔBIC, held-out gain and, where the reference's
-    held-out gap is significant (an insignificant gap is noise, and its shrink no evidence), the
-    shrink of its reproducible part, which must itself be significant (``reproducible``: with
-    replicates, a gap that only changes from run to run is no fixed effect's)."""
-    return (best is not None and best.delta_bic > th.bic_min
-            and (th.held_out_gain_min is None or best.held_out_gain > th.held_out_gain_min)
-            and ((reproducible and best.reproducible_shrink >= th.shrink_min) or not significant))
-
-
 def _forward_selection(run: _Diagnosis, nominal: _Reference, loc):
     """Steps 3-5 in rounds: a round's passing winner joins the reference model of the next.
     Returns (rounds of rankings, selected effects, per-round fits, the model after: (reference
@@ -926,29 +919,27 @@ def _after_model(run: _Diagnosis, rounds, selected, round_fits):
     return next(c for c in rounds[r] if c.effect == name), (model, fit), dict(figures)
 
 
+def _cells_left(run: _Diagnosis, ranking: Sequence[CandidateScore], fits: dict, before: dict) -> dict[str, list]:
+    """{effect: cells left (:func:`ema_uq.gap.structure.structure_left`)} of the best form of
+    every family in ``ranking``, against the nominal's cells and the replicate ceiling's."""
+    nominal_cells = before["selection"].get("cells", {})
+    floor = None if run.ceiling is None else run.ceiling["selection"].get("cells")
+    out: dict[str, list] = {}
+    seen: set[str] = set()
+    for c in ranking:
+        if c.family in seen or c.effect not in fits or not np.isfinite(c.score):
+            continue
+        seen.add(c.family)
+        cells = fits[c.effect][1]["selection"].get("cells", {})
+        out[c.effect] = structure_left(nominal_cells, cells, floor, run.strategy.structure)
+    return out
+
+
 def _verdict(th: Thresholds, ranking: list[CandidateScore], significant: bool, structured: bool,
-             loc_after, loc_after_held, reproducible: bool = True) -> tuple[str, str | None, str]:
-    """Step 6: (verdict, effect, confidence) from round 1 (module docstring). The runner-up of
-    the margin test is the best candidate of another family: forms of one family that explain
-    the gap alike are no ambiguity about what is missing."""
-    best = ranking[0] if ranking and np.isfinite(ranking[0].score) else None
-    rivals = [c.score for c in ranking[1:] if best is not None and c.family != best.family and np.isfinite(c.score)]
-    runner_up = rivals[0] if rivals else 0.0
-    if _passes(th, best, significant, reproducible):
-        confident = (best.score >= th.margin * max(runner_up, 0.0)
-                     and (best.reproducible_shrink >= th.shrink_confident or not significant)
-                     and loc_after is not None and not loc_after.structured and not loc_after_held.structured)
-        return "effect", best.effect, "high" if confident else "low"
-    # a candidate that fits the estimation data far beyond noise (ΔBIC > BIC_MIN) but fails on
-    # held-out data says the residual is not noise even where the localisation tests pass
-    # (seed-1 LT/HS rig ripple with harmonics: ΔBIC 525, held-out gain -20, verdict was none);
-    # no noise-only self-check record came near it (best ΔBIC of 60: -0.8)
-    fits_beyond_noise = best is not None and best.delta_bic > th.bic_min
-    if structured or significant or fits_beyond_noise:
-        # NaN: nothing reproducible, so surely no fixed effect's
-        closes_some = best is not None and best.reproducible_shrink >= th.shrink_min / 2
-        return "unexplained", None, "low" if closes_some else "high"
-    return "none", None, "high"
+             loc_after, loc_after_held, reproducible: bool = True, **kwargs) -> tuple[str, str | None, str]:
+    """Step 6 as (verdict, effect, confidence) (:func:`ema_uq.gap.verdict.verdict`)."""
+    return _open_verdict(th, ranking, significant, structured, loc_after, loc_after_held, reproducible,
+                         **kwargs).as_tuple()
 
 
 def _gap_summary(run: _Diagnosis, before: dict, after: dict | None, verdict: str) -> dict[str, Any]:
@@ -1041,10 +1032,13 @@ def diagnose(
     chosen, after, after_figures = _after_model(run, rounds, selected, round_fits)
     loc_after = loc_after_held = None
     effect_parameters: dict[str, dict[str, float]] = {}
+    tempering = 1.0
     if after is not None:
         model, fit = after
         held_records = run.records(model, fit.estimate, held=True)
-        loc_after = run.localise(model, fit.estimate, run.records(model, fit.estimate, held=False), held=False)
+        est_records_after = run.records(model, fit.estimate, held=False)
+        tempering = effective_sample_fraction([r.residual for r in est_records_after])
+        loc_after = run.localise(model, fit.estimate, est_records_after, held=False)
         loc_after_held = run.localise(model, fit.estimate, run.without_estimation_error(model, fit, held_records),
                                       held=True)
         run.n_sims += len(run.data.estimation) + len(run.data.held)
@@ -1052,9 +1046,19 @@ def diagnose(
         effect_parameters = _parameter_table(model, fit, _effect_parameter_names(model, base))
     ranking = rounds[0] if rounds else []
     before = nominal.figures
-    verdict, effect, confidence = _verdict(strategy.thresholds, ranking, before["selection"]["significant"],
-                                           loc_est.structured or loc_held.structured, loc_after, loc_after_held,
-                                           run.reproducible_significant(before["selection"]))
+    probabilities = family_probabilities(ranking, strategy.thresholds, tempering)
+    left = _cells_left(run, ranking, round_fits[0] if round_fits else {}, before)
+    decided = _open_verdict(strategy.thresholds, ranking, before["selection"]["significant"],
+                            loc_est.structured or loc_held.structured, loc_after, loc_after_held,
+                            run.reproducible_significant(before["selection"]),
+                            probabilities=probabilities, left=left, margin=strategy.margin_evidence)
+    verdict, effect, confidence = decided.as_tuple()
+    best_left = left.get(ranking[0].effect, []) if ranking else []
+    open_set = {"family_probabilities": probabilities, "evidence_tempering": tempering,
+                "margin_evidence": strategy.margin_evidence,
+                "contenders": [{"family": f, "probability": probabilities[f]} for f in decided.contenders],
+                "structure_left": [c.to_json() for c in best_left], "where_left": where_left(best_left),
+                "verdict_reason": decided.reason}
     fit = nominal.fit
     nominal_json = {"log_det_R": fit.log_det_r, "objective": fit.objective, "converged": fit.converged,
                     "fixed": run.fixed, "iterations": fit.iterations, "n_samples": fit.n_samples,
@@ -1071,5 +1075,5 @@ def diagnose(
         channels=list(d.channels), held_out_channels=list(d.held_channels), nominal=nominal_json,
         effect_parameters=effect_parameters, thresholds=_thresholds_json(strategy),
         wall_time_s=time.perf_counter() - t0, n_simulations=run.n_sims, seed=seed,
-        selected=list(selected), further_rounds=rounds[1:],
+        selected=list(selected), further_rounds=rounds[1:], open_set=open_set,
     )

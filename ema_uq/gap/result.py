@@ -10,6 +10,11 @@ import numpy as np
 from .localize import Localization, RegimeRms
 
 
+#: GAP.json keys of the open-set verdict (:mod:`ema_uq.gap.verdict`)
+OPEN_SET_KEYS = ("family_probabilities", "evidence_tempering", "margin_evidence", "contenders", "structure_left",
+                 "where_left", "verdict_reason")
+
+
 # ----------------------------------------------------------------------------------------
 # results
 # ----------------------------------------------------------------------------------------
@@ -92,7 +97,7 @@ def _unfinite(value):
 class GapResult:
     """Outcome of a sim-to-real gap diagnosis (GAP.json of INTERFACES.md plus details).
 
-    ``verdict`` is ``"effect"``, ``"none"`` or ``"unexplained"``; ``effect`` the winning
+    ``verdict`` is ``"effect"``, ``"ambiguous"``, ``"none"`` or ``"unexplained"``; ``effect`` the winning
     catalogue name, the form (None unless the verdict is ``effect``); ``family`` its family
     (``Effect.family``: what the diagnosis names; None unless the verdict is ``effect``); ``ranking`` every candidate,
     best score first; ``where`` the channels and regimes holding the nominal model's gap;
@@ -102,7 +107,10 @@ class GapResult:
     (by default the one with the larger systematic z) gave ``where`` and the signature matches.
     ``selected`` lists the effects kept by forward selection (the winner, and with more than
     one round the effects added after it); ``further_rounds`` ranks the candidates of each
-    round after the first (added to the effects selected before it).
+    round after the first (added to the effects selected before it). ``open_set`` holds the
+    open-set verdict's figures (:data:`OPEN_SET_KEYS`: family probabilities, the tempering of
+    the evidence, the margin, the contenders of an ``ambiguous`` verdict, the cells the best
+    candidate leaves and why no family was named).
     """
 
     concept: str
@@ -130,6 +138,7 @@ class GapResult:
     selected: list[str] = field(default_factory=list)
     further_rounds: list[list[CandidateScore]] = field(default_factory=list)
     family: str | None = None
+    open_set: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.family is None and self.effect is not None:
@@ -155,10 +164,19 @@ class GapResult:
         r = max(len(self.selected) - 1, 0)
         return next((c for c in rounds[r] if c.effect == name), None) if r < len(rounds) else None
 
+    def headline(self) -> str:
+        """The verdict in a few words, for one-line summaries and figure titles."""
+        contenders = " / ".join(c["family"] for c in self.open_set.get("contenders", []))
+        return {"effect": f"effect {self.effect} ({self.confidence} confidence)", "none": "no significant gap",
+                "ambiguous": f"ambiguous ({contenders})" if contenders else "ambiguous",
+                "unexplained": "unexplained gap"}[self.verdict]
+
     def summary(self) -> str:
         named = self.family if self.family == self.effect else f"{self.family} ({self.effect})"
+        contenders = ", ".join(f"{c['family']} {c['probability']:.2f}" for c in self.open_set.get("contenders", []))
         head = {"effect": f"effect {named} ({self.confidence} confidence)",
                 "none": "no significant gap: the noise explains the residual",
+                "ambiguous": f"ambiguous: the data cannot tell these families apart ({contenders})",
                 "unexplained": "a significant gap that no candidate effect closes"}[self.verdict]
         lines = [f"[[Gap diagnosis: {self.concept}]] verdict: {head}",
                  f"    held-out data      = {self.held_out}",
@@ -167,6 +185,7 @@ class GapResult:
                  f"    gap ({self.gap['metric'].split(':')[0]}) {self.gap['before']:.4g} -> {self.gap['after']:.4g}"
                  f"; plain NRMSE {self.gap['nrmse_before']:.4g} -> {self.gap['nrmse_after']:.4g}",
                  *self._shrink_line(),
+                 *self._open_set_lines(),
                  f"    wall time          = {self.wall_time_s:.1f} s, {self.n_simulations} simulations",
                  "[[Ranking]] (gaps and shrink on the scoring part, the held-out gain on the selection part)",
                  f"    {'effect':<24} {'family':<18} {'score':>10} {'dBIC':>10} {'held-out':>10} {'sig':>5} "
@@ -187,6 +206,20 @@ class GapResult:
             for name, p in self.effect_parameters.items():
                 lines.append(f"    {name:<24} = {p['estimate']:.6g} +/- {p['std']:.3g} {p.get('unit', '')}")
         return "\n".join(lines)
+
+    def _open_set_lines(self) -> list[str]:
+        """Family probabilities, and what the best candidate leaves where (open-set verdict)."""
+        o = self.open_set
+        if not o.get("family_probabilities"):
+            return []
+        shown = [f"{f} {p:.3g}" for f, p in list(o["family_probabilities"].items())[:4]]
+        lines = [f"    family probability = {', '.join(shown)} (evidence x {o.get('evidence_tempering', 1.0):.3g}"
+                 f" for autocorrelated residuals; named only beyond 2 ln B = {o.get('margin_evidence', 10):g})"]
+        if o.get("verdict_reason"):
+            lines.append(f"    why not named      = {o['verdict_reason']}")
+        for group, cells in o.get("where_left", {}).items():
+            lines.append(f"    left ({group}){' ' * max(12 - len(group), 0)}= {'; '.join(cells[:3])}")
+        return lines
 
     def _shrink_line(self) -> list[str]:
         """The honest shrink, shown for an ``effect`` verdict only."""
@@ -225,6 +258,9 @@ class GapResult:
             "n_simulations": self.n_simulations,
             "seed": self.seed,
             "provenance": self.provenance,
+            # the open-set verdict: family probabilities, contenders of an ambiguous verdict, and the
+            # cells where the best candidate leaves structure
+            **{k: self.open_set.get(k) for k in OPEN_SET_KEYS if k in self.open_set},
         })
 
     @classmethod
@@ -251,6 +287,7 @@ class GapResult:
             selected=list(data.get("selected", [])),
             further_rounds=[[_candidate_from_json(c) for c in rnd] for rnd in data.get("further_rounds", [])],
             family=data.get("family"),
+            open_set={k: data[k] for k in OPEN_SET_KEYS if k in data},
         )
 
 

@@ -23,6 +23,8 @@ import numpy as np
 from ..experiments import Measurement
 from ..statistics import START_MULTIPLES
 from .localize import ResidualRecord, localize, nrmse_of_products, systematic_products
+from .structure import StructureSettings
+from .verdict import MARGIN_EVIDENCE
 
 
 @dataclass(frozen=True)
@@ -154,6 +156,10 @@ class DiagnosisStrategy:
         the whole gap counts as explainable. The metric's ``z`` must be the mean
         excess over its standard error (as :class:`ema_uq.cranfield.ExcessNrmse`'s), so that
         the nominal's z less the ceiling's is the z of the reproducible part.
+    structure : thresholds of the cell test of what a candidate leaves
+        (:func:`ema_uq.gap.structure.structure_left`).
+    margin_evidence : 2 ln of the least Bayes factor by which a named family beats every other
+        family and the nominal model (:mod:`ema_uq.gap.verdict`).
     """
 
     name: str = "default"
@@ -169,6 +175,8 @@ class DiagnosisStrategy:
     hold_base: bool = False
     figure: Callable[..., Any] = ledger_figure
     replicate_prediction: Callable[..., list[np.ndarray] | None] | None = None
+    structure: StructureSettings = StructureSettings()
+    margin_evidence: float = MARGIN_EVIDENCE
 
     def __post_init__(self) -> None:
         if self.where_source not in ("larger z", "held-out"):

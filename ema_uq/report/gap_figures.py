@@ -82,8 +82,7 @@ def gap_ledger(result):
     ax.tick_params(labelsize=7)
     ax.grid(alpha=0.3, axis="y")
 
-    verdict = {"effect": f"effect {result.effect} ({result.confidence} confidence)", "none": "no significant gap",
-               "unexplained": "unexplained gap"}[result.verdict]
+    verdict = result.headline()
     fig.suptitle(f"Gap ledger, {result.concept}: {verdict}; held-out systematic NRMSE "
                  f"{result.gap['before']:.3g} -> {result.gap['after']:.3g}"
                  + ("" if result.gap.get("shrink") is None else f" (shrink {result.gap['shrink']:.2f})"),

@@ -438,7 +438,10 @@ def _summary_section(study: dict, results: Path, fits: dict) -> str:
     gap = _read(results, "gap.json")
     if gap:
         what = {"effect": f"effect <b>{html.escape(_effect_name(gap))}</b>", "none": "no significant gap",
-                "unexplained": "unexplained gap"}.get(gap["verdict"], html.escape(str(gap["verdict"])))
+                "unexplained": "unexplained gap",
+                "ambiguous": "ambiguous between " + html.escape(" / ".join(
+                    c["family"] for c in gap.get("contenders") or []))}.get(gap["verdict"],
+                                                                           html.escape(str(gap["verdict"])))
         conf = f", {html.escape(str(gap['confidence']))} confidence" if gap.get("confidence") else ""
         params = "; ".join(f"{html.escape(n)} = {_fmt(v.get('estimate'), 4)} ± {_fmt(v.get('std'), 2)} "
                            f"{html.escape(str(v.get('unit', '')))}" for n, v in (gap.get("effect_parameters") or {}).items())

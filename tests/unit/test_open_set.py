@@ -1,0 +1,143 @@
+"""The open-set verdict: family probabilities, the margin, and the cells a candidate leaves."""
+import json
+
+import numpy as np
+import pytest
+
+from ema_uq.gap.localize import ResidualRecord
+from ema_uq.gap.result import CandidateScore
+from ema_uq.gap.strategy import Thresholds
+from ema_uq.gap.structure import (CellEnergy, StructureSettings, cell_energies, cell_masks, structure_left,
+                                  where_left)
+from ema_uq.gap.verdict import (MARGIN_EVIDENCE, effective_sample_fraction, family_probabilities, verdict,
+                                within_margin)
+from ema_uq.models import get_model
+
+
+class Clean:
+    structured = False
+
+
+def _row(effect, family, delta_bic, gain, shrink=0.9):
+    return CandidateScore(effect, delta_bic + gain, 1.0, 1.0 - shrink, shrink, delta_bic, delta_bic, gain, 0.5, 1,
+                          selection_shrink=shrink, family=family)
+
+
+# --- effective sample fraction ------------------------------------------------------------
+def test_effective_sample_fraction_is_one_for_white_noise_and_falls_with_autocorrelation():
+    rng = np.random.default_rng(3)
+    white = rng.normal(size=(20000, 2))
+    assert effective_sample_fraction([white]) == pytest.approx(1.0, abs=0.05)
+    phi = 0.8
+    ar = np.zeros((20000, 1))
+    shocks = rng.normal(size=20000)
+    for k in range(1, 20000):
+        ar[k, 0] = phi * ar[k - 1, 0] + shocks[k]
+    assert effective_sample_fraction([ar]) == pytest.approx((1 - phi) / (1 + phi), rel=0.2)
+    with_gaps = white.copy()
+    with_gaps[100:200] = np.nan                     # NaN rows (not fitted) are left out, not propagated
+    assert np.isfinite(effective_sample_fraction([with_gaps]))
+
+
+# --- family probabilities and the margin ---------------------------------------------------
+def test_family_probabilities_pool_forms_and_keep_the_nominal_model():
+    th = Thresholds()
+    ranking = [_row("a1", "a", 1000.0, 0.0), _row("a2", "a", 900.0, 0.0), _row("b", "b", 990.0, 0.0)]
+    p = family_probabilities(ranking, th)
+    assert set(p) == {"a", "b", "none"} and sum(p.values()) == pytest.approx(1.0)
+    # a's forms share a's prior: a1 alone at 1000 vs b at 990 is 2 ln B = 10, less ln 2 for the weak second form
+    assert 2 * np.log(p["a"] / p["b"]) == pytest.approx(10 - 2 * np.log(2), abs=1e-6)
+    assert within_margin(p) == ["a", "b"]
+    # tempering by the effective-sample fraction shrinks every log ratio alike
+    p_t = family_probabilities(ranking, th, tempering=0.1)
+    assert 2 * np.log(p_t["a"] / p_t["b"]) < 2 * np.log(p["a"] / p["b"])
+    assert p_t["none"] > p["none"]
+
+
+def test_a_family_is_named_only_when_it_wins_by_the_margin_and_leaves_no_structure():
+    th = Thresholds()
+    clear = [_row("play", "backlash", 3000.0, 2000.0), _row("drag", "friction", 600.0, 100.0)]
+    assert verdict(th, clear, True, True, Clean(), Clean(), left={}).as_tuple() == ("effect", "play", "high")
+    # the same winner leaving structure in a cell is not the cause (or not all of it)
+    left = verdict(th, clear, True, True, Clean(), Clean(), left={"play": ["a cell"]})
+    assert left.verdict == "unexplained" and left.effect is None and "leaves structure" in left.reason
+    # two families within the margin, one of them clean: ambiguous, both reported
+    close = [_row("play", "backlash", 3000.0, 2000.0), _row("drag", "friction", 2998.0, 2000.0)]
+    amb = verdict(th, close, True, True, Clean(), Clean(), left={})
+    assert amb.verdict == "ambiguous" and amb.contenders == ["backlash", "friction"]
+    # ... and both leaving structure: unexplained
+    both = verdict(th, close, True, True, Clean(), Clean(), left={"play": ["x"], "drag": ["y"]})
+    assert both.verdict == "unexplained"
+    # evidence so tempered that the nominal model is within the margin: nothing is named
+    p = family_probabilities(clear, th, tempering=MARGIN_EVIDENCE / 6000.0)
+    assert "none" in within_margin(p)
+    weak = verdict(th, clear, True, True, Clean(), Clean(), probabilities=p, left={})
+    assert weak.verdict == "unexplained" and "nominal" in weak.reason
+
+
+def test_without_a_passing_candidate_the_verdict_is_none_or_unexplained_as_before():
+    th = Thresholds()
+    fails_held_out = [_row("ripple", "ripple", 525.0, -20.0, shrink=0.0)]
+    assert verdict(th, fails_held_out, False, False, Clean(), Clean()).as_tuple() == ("unexplained", None, "high")
+    assert verdict(th, [_row("ripple", "ripple", -0.8, 3.0)], False, False, Clean(), Clean()).verdict == "none"
+
+
+# --- cells ---------------------------------------------------------------------------------
+def _cell(name, energy, sd=1.0, kind="mask"):
+    return CellEnergy(name, kind, energy, sd, 100)
+
+
+def test_a_cell_the_candidate_did_not_close_is_left_and_reported_where():
+    before = {"all": _cell("all", 100.0, kind="all"), "stroke:1/4": _cell("stroke:1/4", 60.0),
+              "stroke:2/4": _cell("stroke:2/4", 40.0)}
+    # the candidate closes stroke 2 but leaves most of stroke 1
+    after = {"all": _cell("all", 45.0, kind="all"), "stroke:1/4": _cell("stroke:1/4", 40.0),
+             "stroke:2/4": _cell("stroke:2/4", 2.0)}
+    left = structure_left(before, after)
+    assert [c.name for c in left] == ["stroke:1/4"]
+    assert left[0].share == pytest.approx(0.4)
+    assert "stroke" in where_left(left) and "holds 40%" in where_left(left)["stroke"][0]
+    assert json.loads(json.dumps(left[0].to_json()))["name"] == "stroke:1/4"
+    # the cause closes every cell: nothing left
+    closed = {"all": _cell("all", 3.0, kind="all"), "stroke:1/4": _cell("stroke:1/4", 2.0),
+              "stroke:2/4": _cell("stroke:2/4", 1.0)}
+    assert structure_left(before, closed) == []
+    # what the healthy level (a replicate ceiling) leaves anyway is not asked of the candidate
+    floor = {"all": _cell("all", 40.0, kind="all"), "stroke:1/4": _cell("stroke:1/4", 38.0),
+             "stroke:2/4": _cell("stroke:2/4", 2.0)}
+    assert structure_left(before, after, floor) == []
+    # a small or insignificant remainder is no structure
+    assert structure_left(before, after, settings=StructureSettings(z_cell=50.0)) == []
+    assert structure_left(before, after, settings=StructureSettings(min_share=0.5)) == []
+
+
+def _records(residual, y1, dt=0.01):
+    n = residual.shape[0]
+    t = np.arange(n) * dt
+    model = get_model("htls")
+    outputs = np.zeros((n, len(model.outputs)))
+    outputs[:, model.outputs.index("y1")] = y1
+    return [ResidualRecord("r", t, np.zeros((n, 4)), residual, np.zeros_like(residual), outputs)], model
+
+
+def test_a_stroke_localised_residual_shows_in_its_stroke_cell_and_a_periodic_one_in_a_band():
+    rng = np.random.default_rng(5)
+    n = 6000
+    y1 = 0.05 * np.sin(2 * np.pi * np.arange(n) / 3000.0)          # two strokes out and back
+    noise = 0.1 * rng.normal(size=(n, 2))
+    local = noise.copy()
+    local[y1 > np.quantile(y1, 0.75), 0] += 0.2                    # error on the outer quarter of the stroke
+    records, model = _records(local, y1)
+    masks = cell_masks(records, model)
+    assert {"stroke:1/4", "stroke:4/4", "direction:extend", "direction:retract"} <= set(masks)
+    cells = cell_energies(records, ["a", "b"], np.ones(2), masks)
+    strokes = {k: cells[k].z for k in cells if k.startswith("stroke")}
+    assert max(strokes, key=strokes.get) == "stroke:4/4" and strokes["stroke:4/4"] > 20
+    assert abs(strokes["stroke:2/4"]) < 5
+    # a ripple at a fifth of the sample rate: the top band of its channel, not the others
+    ripple = noise.copy()
+    ripple[:, 1] += 0.1 * np.sin(2 * np.pi * 0.2 * np.arange(n))
+    records, model = _records(ripple, y1)
+    cells = cell_energies(records, ["a", "b"], np.ones(2), cell_masks(records, model))
+    assert cells["band:b:0.1-0.5fs"].z > 10
+    assert abs(cells["band:a:0.1-0.5fs"].z) < 5 and abs(cells["band:b:0-0.02fs"].z) < 5
