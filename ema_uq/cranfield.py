@@ -327,13 +327,17 @@ class HealthyReference:
     held_out_blocks: list[str]
     wall_time_s: float
     replicates: bool = True
+    healthy_blocks: tuple[Measurement, ...] = ()
 
     @property
     def values(self) -> dict[str, float]:
         return self.fit.as_dict()
 
     def strategy(self) -> DiagnosisStrategy:
-        return cranfield_strategy(self.values, self.metric, self.replicates)
+        # the healthy held-out blocks give the cell test its healthy level: what the healthy rig
+        # leaves in the position loop and the current is not a fault's
+        return replace(cranfield_strategy(self.values, self.metric, self.replicates),
+                       healthy_records=tuple(self.healthy_blocks))
 
     def to_json(self) -> dict[str, Any]:
         return {"estimate": self.values, "std": dict(zip(self.fit.names, map(float, self.fit.std))),
@@ -361,7 +365,7 @@ def healthy_reference(fit_blocks: Sequence[Measurement], baseline_blocks: Sequen
     nrmse = np.sqrt(np.mean(held ** 2, axis=0) / np.mean(measured ** 2, axis=0))
     return HealthyReference(fit, stride, metric, dict(zip(CHANNELS, map(float, nrmse))),
                             [m.experiment.name for m in fit_blocks], [m.experiment.name for m in unseen],
-                            time.perf_counter() - t0)
+                            time.perf_counter() - t0, healthy_blocks=tuple(held_out_blocks))
 
 
 @dataclass

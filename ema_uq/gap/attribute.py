@@ -66,23 +66,25 @@ Procedure (``diagnose``):
    best candidate passes the ``effect`` test below, it joins the model, and the remaining
    candidates (less the other forms of its family) are added to that model and scored
    against it in the next round.
-6. Verdict:
-   ``effect`` when the best candidate has ΔBIC > ``BIC_MIN``, G > ``HELD_OUT_GAIN_MIN`` and,
-   if the nominal model's gap on the selection part is significant (see below), a reproducible
-   shrink ≥ ``SHRINK_MIN`` (an insignificant gap is noise, and its shrink no evidence) of a
-   reproducible part that is itself significant (with replicates: the nominal's z less the
-   ceiling's passes the metric's threshold; a gap that only changes from run to run is no
-   fixed effect's). Its
-   confidence is ``high`` when its score is at least ``MARGIN`` times the runner-up's (the best
-   candidate of another family: ``Effect.family`` groups alternative forms of one physics, and
-   the diagnosis names the family, ``GapResult.family``, beside the form, ``effect``), the
-   reproducible shrink is ≥ ``SHRINK_CONFIDENT`` (or the gap insignificant) and the augmented model's
-   residual passes every residual test of the localisation, on estimation and held-out
-   data; else ``low``.
-   Otherwise ``unexplained`` when the nominal residual is structured (Ljung-Box, bias against
-   each record's own noise, input cross-correlation, common error factors or systematic
-   energy, family-wise level 0.001) on the estimation data, or on the held-out data less the
-   prediction error the fit's own parameter uncertainty explains
+6. Verdict (:mod:`ema_uq.gap.verdict`, open-set: the catalogue may not hold the cause):
+   ``effect`` only when the best candidate passes the effect test of the aggregate gap
+   (ΔBIC > ``BIC_MIN``, G > ``HELD_OUT_GAIN_MIN`` and, if the nominal model's gap on the
+   selection part is significant, a reproducible shrink ≥ ``SHRINK_MIN`` of a reproducible
+   part that is itself significant), *and* its family beats every other family and the nominal
+   model by 2 ln B ≥ ``margin_evidence`` (10) in family probability (evidence ΔBIC + G tempered
+   by the effective-sample fraction of the best model's residual), *and* its held-out residual
+   leaves no cell — channel, stroke bin, direction, regime, frequency band — that carried a
+   material part of the gap and that it did not halve (:mod:`ema_uq.gap.structure`). Its
+   confidence is ``high`` when the reproducible shrink is ≥ ``SHRINK_CONFIDENT`` (or the gap
+   insignificant) and the augmented model's residual passes every residual test of the
+   localisation, on estimation and held-out data; else ``low``. A passing candidate that fails
+   the margin gives ``ambiguous`` (the families within the margin, with their probabilities)
+   when one of them leaves no structure, else ``unexplained``; one that wins the margin but
+   leaves structure gives ``unexplained`` with the cells left (GAP.json ``where_left``).
+   Without a passing candidate: ``unexplained`` when the nominal residual is structured
+   (Ljung-Box, bias against each record's own noise, input cross-correlation, common error
+   factors or systematic energy, family-wise level 0.001) on the estimation data, or on the
+   held-out data less the prediction error the fit's own parameter uncertainty explains
    (:meth:`_Diagnosis.without_estimation_error`), or the gap on the selection part is
    significant, or the best candidate has ΔBIC > ``BIC_MIN`` (it fits structure in the
    estimation data that fails on held-out data); else ``none``: the noise explains the residual.
@@ -92,7 +94,8 @@ Procedure (``diagnose``):
    ``selection_shrink`` and ``reproducible_shrink`` only for an ``effect`` verdict (null
    otherwise); with replicates also ``ceiling_gap_selection``/``ceiling_gap_scoring``,
    ``reproducible_share`` (1 - ceiling / before on the selection part), ``reproducible_z`` and
-   ``reproducible_significant``.
+   ``reproducible_significant``. Beside it ``family_probabilities``, ``evidence_tempering``,
+   ``margin_evidence``, ``contenders``, ``structure_left``, ``where_left`` and ``verdict_reason``.
 
 Gap metric: the held-out *systematic NRMSE* (:func:`ema_uq.gap.localize.systematic_nrmse`):
 per channel the model-error mean square — the part of the residual that channels share
@@ -315,6 +318,7 @@ class _Diagnosis:
     seed: int | None = None
     ceiling: dict[str, dict[str, Any]] | None = None   # held-out figures of the replicate prediction
     masks: dict[str, list[np.ndarray]] | None = None   # cell masks of the selection part (nominal outputs)
+    healthy_cells: dict[str, Any] | None = None         # cells of the reference on the strategy's healthy records
     resamples: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -780,6 +784,15 @@ def _fit_nominal(run: _Diagnosis):
     before = run.parts(base, held_records, nominal.estimate)
     before["all"] = run.held_out_figures(base, held_records)
     run.ceiling = run.ceiling_of(base, est_records, held_records)
+    if strategy.healthy_records:
+        healthy = list(strategy.healthy_records)
+        names = [f"healthy {i + 1}: {m.experiment.name}" for i, m in enumerate(healthy)]
+        records = _simulate_records(base, nominal.estimate, healthy, d.held_channels, names, strategy)[0]
+        run.n_sims += len(healthy)
+        constants = strategy.constants_of(healthy[0])
+        run.healthy_cells = cell_energies(records, d.held_channels, d.held_spread,
+                                          cell_masks(records, base, nominal.estimate,
+                                                     base.constants_vector() if constants is None else constants))
     run.say(f"nominal: log det R {nominal.log_det_r:.4g}, held-out gap {before['all']['gap']:.4g} "
             f"(z {before['all']['z']:.1f}); {'structured' if loc_est.structured else 'white'} residual")
     return _Reference(base, nominal, nominal.objective, before, []), loc_est, loc_held
@@ -919,11 +932,28 @@ def _after_model(run: _Diagnosis, rounds, selected, round_fits):
     return next(c for c in rounds[r] if c.effect == name), (model, fit), dict(figures)
 
 
+def _healthy_level(run: _Diagnosis, nominal_cells: dict) -> dict | None:
+    """Per cell the larger of the replicate ceiling's energy and the healthy level (the healthy
+    records' energy per sample times the cell's samples); None when neither is there."""
+    ceiling = None if run.ceiling is None else run.ceiling["selection"].get("cells")
+    healthy = run.healthy_cells
+    if ceiling is None and not healthy:
+        return None
+    out = {}
+    for name, cell in nominal_cells.items():
+        levels = [ceiling[name].energy] if ceiling and name in ceiling else []
+        if healthy and name in healthy and healthy[name].samples > 0:
+            levels.append(healthy[name].energy / healthy[name].samples * cell.samples)
+        if levels:
+            out[name] = replace(cell, energy=float(max(levels)))
+    return out
+
+
 def _cells_left(run: _Diagnosis, ranking: Sequence[CandidateScore], fits: dict, before: dict) -> dict[str, list]:
     """{effect: cells left (:func:`ema_uq.gap.structure.structure_left`)} of the best form of
     every family in ``ranking``, against the nominal's cells and the replicate ceiling's."""
     nominal_cells = before["selection"].get("cells", {})
-    floor = None if run.ceiling is None else run.ceiling["selection"].get("cells")
+    floor = _healthy_level(run, nominal_cells)
     out: dict[str, list] = {}
     seen: set[str] = set()
     for c in ranking:

@@ -158,6 +158,10 @@ class DiagnosisStrategy:
         the nominal's z less the ceiling's is the z of the reproducible part.
     structure : thresholds of the cell test of what a candidate leaves
         (:func:`ema_uq.gap.structure.structure_left`).
+    healthy_records : fault diagnosis: held-out records of the healthy rig that the reference fit
+        did not see. The reference model's residual on them is the *healthy level* of every cell of
+        the cell test (per sample): structure the healthy rig leaves too is not the fault's, and no
+        candidate is asked to close it. Empty: the healthy level is white noise.
     margin_evidence : 2 ln of the least Bayes factor by which a named family beats every other
         family and the nominal model (:mod:`ema_uq.gap.verdict`).
     """
@@ -176,6 +180,7 @@ class DiagnosisStrategy:
     figure: Callable[..., Any] = ledger_figure
     replicate_prediction: Callable[..., list[np.ndarray] | None] | None = None
     structure: StructureSettings = StructureSettings()
+    healthy_records: tuple[Measurement, ...] = ()
     margin_evidence: float = MARGIN_EVIDENCE
 
     def __post_init__(self) -> None:

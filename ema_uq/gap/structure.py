@@ -28,7 +28,7 @@ an exponential), with the chi-square standard deviation of white noise.
 
 A cell is *left* when, after the candidate, (1) its energy stands out of the noise (z >
 ``Z_CELL``), (2) it holds at least ``MIN_SHARE`` of the nominal model's total excess energy of
-its kind (mask cells against the whole residual, band cells against the channel's bands), and
+its kind (mask cells against the whole residual, band cells against every channel's bands), and
 (3) the candidate closed less than ``shrink_min`` of the cell on the metric's square-root scale
 (energy after > (1 - shrink_min)² of before), every energy counted above the healthy level:
 the gap the replicate prediction leaves where the records repeat one experiment (a rig that
@@ -103,7 +103,8 @@ class LeftCell:
     def describe(self) -> str:
         closed = 1.0 - np.sqrt(max(self.after - self.floor, 0.0) / (self.before - self.floor)) \
             if self.before > self.floor else float("nan")
-        return f"{self.name} (holds {self.share:.0%} of the gap, closed {closed:.0%}, z {self.z_after:.1f})"
+        of = "of the excess power" if self.kind.startswith("band:") else "of the gap"
+        return f"{self.name} (holds {self.share:.0%} {of}, closed {closed:.0%}, z {self.z_after:.1f})"
 
 
 def _stroke(model, outputs: np.ndarray) -> np.ndarray | None:
@@ -250,7 +251,7 @@ def structure_left(before: Mapping[str, CellEnergy], after: Mapping[str, CellEne
         if cell.kind == "all":
             totals["mask"] = max(cell.energy - level(floor, name), 0.0)
         elif cell.kind.startswith("band:"):
-            totals[cell.kind] = totals.get(cell.kind, 0.0) + max(cell.energy - level(floor, name), 0.0)
+            totals["band"] = totals.get("band", 0.0) + max(cell.energy - level(floor, name), 0.0)
     left: list[LeftCell] = []
     keep = (1.0 - settings.shrink_min) ** 2
     for name, cell in after.items():
@@ -259,7 +260,7 @@ def structure_left(before: Mapping[str, CellEnergy], after: Mapping[str, CellEne
         base = level(floor, name)
         excess_after = cell.energy - base
         excess_before = max(before[name].energy - base, 0.0)
-        total = totals.get(cell.kind, 0.0)
+        total = totals.get("band" if cell.kind.startswith("band:") else cell.kind, 0.0)
         if total <= 0:
             continue
         share = excess_after / total
