@@ -306,6 +306,29 @@ def _honest_shrink(summary: dict) -> str:
             "which did not take part in choosing the effect.")
 
 
+def _open_set_parts(gap: dict) -> list[str]:
+    """Family probabilities and, when a candidate leaves structure, where (the open-set verdict)."""
+    probabilities = gap.get("family_probabilities") or {}
+    if not probabilities:
+        return []
+    tempering = gap.get("evidence_tempering")
+    rows = [[html.escape(f), f"{p:.3g}"] for f, p in probabilities.items()]
+    parts = ["<h3>Family probabilities</h3>",
+             f"<p>From each family's evidence ΔBIC + held-out gain (the nominal model is <i>none</i>), tempered by "
+             f"the effective-sample fraction {_fmt(tempering, 2)} of the best model's residual; a family is named "
+             f"only when it beats every other by 2 ln B ≥ {_fmt(gap.get('margin_evidence'), 3)} and leaves no "
+             "structure.</p>", _table(["family", "probability"], rows)]
+    if gap.get("verdict_reason"):
+        parts.append(f"<p>Not named: {html.escape(str(gap['verdict_reason']))}.</p>")
+    where = gap.get("where_left") or {}
+    if where:
+        items = "".join(f"<li><b>{html.escape(group)}</b>: {html.escape('; '.join(cells[:3]))}</li>"
+                        for group, cells in where.items())
+        parts.append("<p>Structure the best candidate leaves on the held-out data (cells it did not halve, "
+                     f"holding a material part of the gap):</p><ul>{items}</ul>")
+    return parts
+
+
 def _gap_section(study: dict, results: Path) -> str:
     """The gap ledger: verdict, where the nominal model departs, each candidate's refit scores,
     the winner's parameters and the before/after figure."""
@@ -330,6 +353,7 @@ def _gap_section(study: dict, results: Path) -> str:
         metric = summary.get("metric", "held-out systematic NRMSE")
         parts.append(f"<p>Gap metric ({html.escape(str(metric))}): {_fmt(before, 4)} before, {_fmt(after, 4)} after "
                      f"the best candidate on all held-out data. {_honest_shrink(summary)}</p>")
+    parts += _open_set_parts(gap)
     extra = [k for k in ("delta_bic", "likelihood_ratio", "held_out_gain", "signature_match") if gap["ranking"]
              and k in gap["ranking"][0]]
     rows = [[html.escape(str(c["effect"])), html.escape(str(c.get("family", c["effect"]))), _fmt(c["score"], 4),
