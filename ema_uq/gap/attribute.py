@@ -131,6 +131,7 @@ from ..simulate import SimulationError, simulate_batch
 from .localize import ResidualRecord, complete_runs, noise_std
 from .result import CandidateScore, GapResult
 from .strategy import DiagnosisSettings, DiagnosisStrategy, Thresholds, strategy_for
+from .predictable import state_predictable
 from .structure import cell_energies, cell_masks, structure_left, where_left
 from .verdict import (effective_sample_fraction, family_probabilities, passes as _passes,
                       reproducible_shrink as _reproducible_shrink, verdict as _open_verdict)
@@ -319,6 +320,7 @@ class _Diagnosis:
     ceiling: dict[str, dict[str, Any]] | None = None   # held-out figures of the replicate prediction
     masks: dict[str, list[np.ndarray]] | None = None   # cell masks of the selection part (nominal outputs)
     healthy_cells: dict[str, Any] | None = None         # cells of the reference on the strategy's healthy records
+    predictable: Any = None                             # what the state predicts of the nominal's held-out gap
     resamples: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -784,6 +786,9 @@ def _fit_nominal(run: _Diagnosis):
     before = run.parts(base, held_records, nominal.estimate)
     before["all"] = run.held_out_figures(base, held_records)
     run.ceiling = run.ceiling_of(base, est_records, held_records)
+    columns = [d.channels.index(c) for c in d.held_channels]
+    run.predictable = state_predictable([replace(r, observed=r.observed[:, columns], predicted=r.predicted[:, columns])
+                                         for r in est_records], held_records, d.held_spread)
     if strategy.healthy_records:
         healthy = list(strategy.healthy_records)
         names = [f"healthy {i + 1}: {m.experiment.name}" for i, m in enumerate(healthy)]
@@ -930,6 +935,16 @@ def _after_model(run: _Diagnosis, rounds, selected, round_fits):
         return None, None, None
     (model, _, fit, _), figures = round_fits[r][name]
     return next(c for c in rounds[r] if c.effect == name), (model, fit), dict(figures)
+
+
+def _deterministic(run: _Diagnosis) -> bool | None:
+    """Whether the operating state predicts a significant, material part of the nominal's held-out
+    gap (:mod:`ema_uq.gap.predictable`); None when it could not be measured."""
+    p = run.predictable
+    if p is None or not np.isfinite(p.z):
+        return None
+    th = run.strategy.structure
+    return bool(p.z > th.z_cell and p.share >= th.min_share)
 
 
 def _healthy_level(run: _Diagnosis, nominal_cells: dict) -> dict | None:
@@ -1081,14 +1096,16 @@ def diagnose(
     decided = _open_verdict(strategy.thresholds, ranking, before["selection"]["significant"],
                             loc_est.structured or loc_held.structured, loc_after, loc_after_held,
                             run.reproducible_significant(before["selection"]),
-                            probabilities=probabilities, left=left, margin=strategy.margin_evidence)
+                            probabilities=probabilities, left=left, margin=strategy.margin_evidence,
+                            deterministic=_deterministic(run))
     verdict, effect, confidence = decided.as_tuple()
     best_left = left.get(ranking[0].effect, []) if ranking else []
     open_set = {"family_probabilities": probabilities, "evidence_tempering": tempering,
                 "margin_evidence": strategy.margin_evidence,
                 "contenders": [{"family": f, "probability": probabilities[f]} for f in decided.contenders],
                 "structure_left": [c.to_json() for c in best_left], "where_left": where_left(best_left),
-                "verdict_reason": decided.reason}
+                "verdict_reason": decided.reason,
+                "state_predictable": None if run.predictable is None else run.predictable.to_json()}
     fit = nominal.fit
     nominal_json = {"log_det_R": fit.log_det_r, "objective": fit.objective, "converged": fit.converged,
                     "fixed": run.fixed, "iterations": fit.iterations, "n_samples": fit.n_samples,

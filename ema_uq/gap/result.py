@@ -12,7 +12,7 @@ from .localize import Localization, RegimeRms
 
 #: GAP.json keys of the open-set verdict (:mod:`ema_uq.gap.verdict`)
 OPEN_SET_KEYS = ("family_probabilities", "evidence_tempering", "margin_evidence", "contenders", "structure_left",
-                 "where_left", "verdict_reason")
+                 "where_left", "verdict_reason", "state_predictable")
 
 
 # ----------------------------------------------------------------------------------------
@@ -177,7 +177,8 @@ class GapResult:
         head = {"effect": f"effect {named} ({self.confidence} confidence)",
                 "none": "no significant gap: the noise explains the residual",
                 "ambiguous": f"ambiguous: the data cannot tell these families apart ({contenders})",
-                "unexplained": "a significant gap that no candidate effect closes"}[self.verdict]
+                "unexplained": f"a significant gap that no candidate effect closes ({self.confidence} confidence)"
+                }[self.verdict]
         lines = [f"[[Gap diagnosis: {self.concept}]] verdict: {head}",
                  f"    held-out data      = {self.held_out}",
                  f"    where (channels)   = {', '.join(self.where['channels']) or '-'}  ({self.where_source} data)",
@@ -215,6 +216,10 @@ class GapResult:
         shown = [f"{f} {p:.3g}" for f, p in list(o["family_probabilities"].items())[:4]]
         lines = [f"    family probability = {', '.join(shown)} (evidence x {o.get('evidence_tempering', 1.0):.3g}"
                  f" for autocorrelated residuals; named only beyond 2 ln B = {o.get('margin_evidence', 10):g})"]
+        p = o.get("state_predictable") or {}
+        if p.get("z") is not None:
+            lines.append(f"    state predicts     = {p['share']:.0%} of the held-out gap (z {p['z']:.1f}): "
+                         + ("a model error" if p["z"] > 5 and p["share"] >= 0.1 else "not a function of the state"))
         if o.get("verdict_reason"):
             lines.append(f"    why not named      = {o['verdict_reason']}")
         for group, cells in o.get("where_left", {}).items():

@@ -25,7 +25,9 @@ Otherwise, when the best candidate passes the effect test of the aggregate gap
 every family within the margin leaves structure (the best partial candidate, what it closes
 and the cells left are reported), or when the nominal model is within the margin of the best.
 Without a passing candidate the verdict is ``unexplained`` or ``none`` as before
-(:func:`verdict`).
+(:func:`verdict`); an ``unexplained`` verdict has ``high`` confidence only when no candidate
+closes a quarter of the gap and the operating state predicts it (:mod:`ema_uq.gap.predictable`:
+coloured noise and disturbances are not a mechanism).
 """
 from __future__ import annotations
 
@@ -146,10 +148,12 @@ def verdict(th: Thresholds, ranking: list[CandidateScore], significant: bool, st
             loc_after, loc_after_held, reproducible: bool = True, *,
             probabilities: Mapping[str, float] | None = None,
             left: Mapping[str, Sequence[Any]] | None = None,
-            margin: float = MARGIN_EVIDENCE) -> Verdict:
+            margin: float = MARGIN_EVIDENCE, deterministic: bool | None = None) -> Verdict:
     """The verdict from round 1's ``ranking`` (module docstring). ``probabilities``: family
     probabilities (None: from the untempered evidence); ``left``: {effect: cells left} of the
-    best form of each family (None: no cell test)."""
+    best form of each family (None: no cell test); ``deterministic``: whether the operating state
+    predicts the gap (:mod:`ema_uq.gap.predictable`; None: not measured), which an
+    ``unexplained`` verdict needs for ``high`` confidence."""
     best = ranking[0] if ranking and np.isfinite(ranking[0].score) else None
     if passes(th, best, significant, reproducible):
         probabilities = family_probabilities(ranking, th) if probabilities is None else probabilities
@@ -178,5 +182,6 @@ def verdict(th: Thresholds, ranking: list[CandidateScore], significant: bool, st
     if structured or significant or fits_beyond_noise:
         # NaN: nothing reproducible, so surely no fixed effect's
         closes_some = best is not None and best.reproducible_shrink >= th.shrink_min / 2
-        return Verdict("unexplained", None, "low" if closes_some else "high")
+        # a gap the state does not predict may be coloured noise or a disturbance, not a mechanism
+        return Verdict("unexplained", None, "low" if closes_some or deterministic is False else "high")
     return Verdict("none", None, "high")

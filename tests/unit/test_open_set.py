@@ -141,3 +141,45 @@ def test_a_stroke_localised_residual_shows_in_its_stroke_cell_and_a_periodic_one
     cells = cell_energies(records, ["a", "b"], np.ones(2), cell_masks(records, model))
     assert cells["band:b:0.1-0.5fs"].z > 10
     assert abs(cells["band:a:0.1-0.5fs"].z) < 5 and abs(cells["band:b:0-0.02fs"].z) < 5
+
+
+# --- is the gap a model error? what the operating state predicts ---------------------------
+def _state_records(residual_of, seed, n=4000):
+    from ema_uq.gap.predictable import state_predictable  # noqa: F401  (import check)
+
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * 0.01
+    speed = np.sin(2 * np.pi * t / (7.0 + seed % 3))
+    outputs = np.column_stack([speed, np.cumsum(speed) * 0.01])
+    inputs = np.column_stack([np.cos(2 * np.pi * t / 11.0), np.zeros(n)])
+    residual = residual_of(speed, rng)
+    return ResidualRecord("r", t, inputs, residual, np.zeros_like(residual), outputs)
+
+
+def test_a_gap_the_state_predicts_is_a_model_error_and_coloured_noise_is_not():
+    from ema_uq.gap.predictable import state_predictable
+
+    def friction(speed, rng):         # a direction-dependent error: a function of the state
+        return np.column_stack([0.05 * np.tanh(speed / 0.05), np.zeros_like(speed)]) + 0.02 * rng.normal(size=(speed.size, 2))
+
+    def coloured(speed, rng):         # AR(1) sensor noise: structured, but no function of the state
+        e = np.zeros((speed.size, 2))
+        w = rng.normal(size=e.shape) * 0.02
+        for k in range(1, speed.size):
+            e[k] = 0.9 * e[k - 1] + w[k]
+        return e
+
+    spread = np.array([1.0, 1.0])
+    model_error = state_predictable([_state_records(friction, 1)], [_state_records(friction, 2)], spread)
+    assert model_error.share > 0.8 and model_error.z > 20
+    noise = state_predictable([_state_records(coloured, 1)], [_state_records(coloured, 2)], spread)
+    assert noise.share < 0.1 and noise.z < 5
+    assert json.loads(json.dumps(noise.to_json()))["regressors"] == noise.regressors
+
+
+def test_an_unexplained_gap_is_high_confidence_only_when_the_state_predicts_it():
+    th = Thresholds()
+    nothing_fits = [_row("ripple", "ripple", 5.0, -3.0, shrink=0.0)]
+    assert verdict(th, nothing_fits, True, True, Clean(), Clean(), deterministic=True).confidence == "high"
+    assert verdict(th, nothing_fits, True, True, Clean(), Clean(), deterministic=False).confidence == "low"
+    assert verdict(th, nothing_fits, True, True, Clean(), Clean(), deterministic=None).confidence == "high"
