@@ -66,9 +66,10 @@ physics:
   fails;
 - ``current_gain``, ``current_offset``: drift of the Hall current sensor's gain and zero.
 
-In every fault set of the rig the moving current changes by 0.04-0.26 A under +20 and +40 kgf
-and by at most 0.015 A under -40 kgf (per-run means), which is why the ball-contact effects
-have one value per load sense.
+The per-load-sense values rest on the flank argument above; the records are consistent with
+it (in every fault set the moving current changes by 0.04-0.26 A under +20 and +40 kgf and by
+at most 0.015 A under -40 kgf, per-run means), and that asymmetry is also what sets
+``seal_drag`` apart from ``lubrication_loss`` on them.
 """
 from __future__ import annotations
 
