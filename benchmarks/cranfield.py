@@ -5,11 +5,13 @@ Timings: one 1620-sample block (64.8 s at 25 Hz) simulated for 1 and for 64 para
 (the batched kernel, after its first compile), nominal and with every effect switched on; the
 healthy fit (Gauss-Newton on runs 1-5 of normal.csv, 15 blocks); one diagnosis per record set.
 
-Usage: python benchmarks/cranfield.py [--quick | --splits] [--out JSON]
+Usage: python benchmarks/cranfield.py [--quick | --splits all] [--out JSON]
     --quick: a reduced study (fit on runs 1-3, faults judged on runs 3-4 after fitting runs 1-2)
-    --splits: the study under six splits of the ten runs (fitted | held out), one verdict line
-        each, with and without the replicate ceiling of the shrink test: how much the verdicts
-        depend on which runs are held out, the rig drifting within each test session (~2 min)
+    --splits all: the study under every split of the family :func:`ema_uq.cranfield.run_splits`
+        (12 halvings of the ten runs, fitted | held out: the ten arcs and the two interleaved
+        ones), one verdict line each, then the verdict counts per record set: how much the
+        verdicts depend on which runs are held out, the rig drifting within each test session
+        (~25 s per split)
 
 Needs the record sets ($EMA_UQ_CRANFIELD_DIR or ../shared/data/real/cranfield_linear_actuator).
 """
@@ -22,7 +24,7 @@ import time
 import numpy as np
 
 from ema_uq import io
-from ema_uq.cranfield import CHANNELS, EXPECTED, run_study
+from ema_uq.cranfield import CHANNELS, EXPECTED, run_splits, run_study
 from ema_uq.models import get_model
 from ema_uq.models.cranfield import EFFECTS
 from ema_uq.simulate import simulate_batch
@@ -54,50 +56,40 @@ def simulator_timings() -> dict[str, float]:
     return out
 
 
-#: Splits of the ten runs: (healthy fit runs, healthy held-out runs, fault estimation runs,
-#: fault held-out runs); the first two healthy held-out runs fit the normal set's effects.
-SPLITS = {
-    "1-5 | 6-10": ((1, 2, 3, 4, 5), (6, 7, 8, 9, 10), (1, 2, 3, 4, 5), (6, 7, 8, 9, 10)),
-    "6-10 | 1-5": ((6, 7, 8, 9, 10), (1, 2, 3, 4, 5), (6, 7, 8, 9, 10), (1, 2, 3, 4, 5)),
-    "odd | even": ((1, 3, 5, 7, 9), (2, 4, 6, 8, 10), (1, 3, 5, 7, 9), (2, 4, 6, 8, 10)),
-    "even | odd": ((2, 4, 6, 8, 10), (1, 3, 5, 7, 9), (2, 4, 6, 8, 10), (1, 3, 5, 7, 9)),
-    "1-2 | 3-4": ((1, 2, 3), (6, 7, 8, 9), (1, 2), (3, 4)),
-    "1-3 | 8-10": ((1, 2, 3), (4, 5, 6, 7, 8), (1, 2, 3), (8, 9, 10)),
-}
-
-
-def split_table(read) -> list[dict]:
-    """Every split of :data:`SPLITS`, with the replicate ceiling and without it: per record set
-    the verdict, the best candidate, its selection and reproducible shrink and the reproducible
-    share of the gap."""
+def split_table(read, splits: dict | None = None) -> tuple[list[dict], dict[str, dict[str, int]]]:
+    """Every split of ``splits`` (default :func:`ema_uq.cranfield.run_splits`): per record set
+    the verdict, the best candidate, its selection and reproducible shrink, the reproducible
+    share of the gap and the fitted play of the backlash candidate; and the verdict counts per
+    record set over the splits."""
     rows = []
-    for replicates in (True, False):
-        for label, (fit, healthy, estimation, held) in SPLITS.items():
-            study = run_study(read, fit_runs=fit, healthy_held_out_runs=healthy, estimation_runs=estimation,
-                              held_out_runs=held, replicates=replicates)
-            row = {"split": label, "replicates": replicates, "right": 0, "sets": {}}
-            for d in study.diagnoses:
-                r, verdict = d.row(), study.verdict_of(d.record_set)
-                row["right"] += verdict == EXPECTED[d.record_set]
-                row["sets"][d.record_set] = {"verdict": verdict, "best": r["best"],
-                                             "selection_shrink": r["selection_shrink"],
-                                             "reproducible_shrink": r["reproducible_shrink"],
-                                             "reproducible_share": r["reproducible_share"]}
-            rows.append(row)
-            b1 = row["sets"].get("backlash1")
-            detail = (f" ({b1['selection_shrink']:.2f} / {b1['reproducible_shrink']:.2f} of "
-                      f"{b1['reproducible_share']:.2f})" if replicates and b1 else "")
-            print(f"    {'with' if replicates else 'without':<8} {label:<11} {row['right']}/{len(EXPECTED)}  "
-                  + "  ".join(f"{name}: {v['verdict']}" + (detail if name == "backlash1" else "")
-                              for name, v in row["sets"].items()), flush=True)
-    return rows
+    counts: dict[str, dict[str, int]] = {name: {} for name in EXPECTED}
+    for label, (fit, healthy, estimation, held) in (splits or run_splits()).items():
+        study = run_study(read, fit_runs=fit, healthy_held_out_runs=healthy, estimation_runs=estimation,
+                          held_out_runs=held)
+        row = {"split": label, "fit_runs": list(fit), "held_out_runs": list(held), "right": 0, "sets": {}}
+        for d in study.diagnoses:
+            r, verdict = d.row(), study.verdict_of(d.record_set)
+            play = next((c for c in d.result.ranking if c.effect == "backlash"), None)
+            row["right"] += verdict == EXPECTED[d.record_set]
+            counts[d.record_set][verdict] = counts[d.record_set].get(verdict, 0) + 1
+            row["sets"][d.record_set] = {
+                "verdict": verdict, "best": r["best"], "runner_up": r["runner_up"],
+                "selection_shrink": r["selection_shrink"], "reproducible_shrink": r["reproducible_shrink"],
+                "reproducible_share": r["reproducible_share"],
+                "play_m": None if play is None else play.parameters["backlash_play"]["estimate"],
+                "play_std_m": None if play is None else play.parameters["backlash_play"]["std"],
+                "play_delta_bic": None if play is None else play.delta_bic}
+        rows.append(row)
+        print(f"    {label:<22} {row['right']}/{len(EXPECTED)}  "
+              + "  ".join(f"{name}: {v['verdict']}" for name, v in row["sets"].items()), flush=True)
+    return rows, counts
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="reduced study (about 40 s instead of 60 s)")
-    parser.add_argument("--splits", action="store_true", help="the study under six run splits, with and without "
-                                                                 "the replicate ceiling")
+    parser.add_argument("--splits", choices=("all",), help="the study under every split of the run-split family "
+                                                          "(ema_uq.cranfield.run_splits)")
     parser.add_argument("--out", help="also write the timings and the study as JSON")
     args = parser.parse_args()
     if args.quick and args.splits:
@@ -112,12 +104,17 @@ def main() -> None:
         return io.read_cranfield(io.cranfield_file(name), runs=runs, channels=CHANNELS)
 
     if args.splits:
-        print("[[Run splits]] verdicts per split (backlash1: selection shrink / reproducible shrink of the "
-              "reproducible share)")
-        rows = split_table(read)
+        splits = run_splits()
+        print(f"[[Run splits]] verdicts under {len(splits)} splits (fitted runs | held-out runs)")
+        rows, counts = split_table(read, splits)
+        print("[[Verdict counts]] per record set over the splits")
+        for name, c in counts.items():
+            print(f"    {name:<18} expected {EXPECTED[name]:<18} "
+                  + ", ".join(f"{v} {n}" for v, n in sorted(c.items(), key=lambda kv: -kv[1])))
         if args.out:
             with open(args.out, "w", encoding="utf-8") as fh:
-                json.dump({"simulator_s": timings, "splits": rows}, fh, indent=2, default=float)
+                json.dump({"simulator_s": timings, "family": "ema_uq.cranfield.run_splits", "n_splits": len(splits),
+                           "expected": EXPECTED, "counts": counts, "splits": rows}, fh, indent=2, default=float)
         return
     splits = (dict(fit_runs=(1, 2, 3), healthy_held_out_runs=(6, 7, 8, 9), estimation_runs=(1, 2), held_out_runs=(3, 4))
               if args.quick else {})

@@ -32,7 +32,7 @@ with the lag tau)::
 with |u| and sgn(u) smoothed by tanh(u / v_eps), and d = 1 (the share of the sample interval
 in which the nut is driven; below 1 only with ``backlash``). ``F_d`` [N] is the force the
 drive delivers beyond the unloaded rig's own losses: the load and the friction that grows
-with it. An added force shows in the current as g(u): power-like at low speed and growing
+with it (and the friction changes of the effects below). An added force shows in the current as g(u): power-like at low speed and growing
 faster above v_p (the records show it: the current change of a load step at 7 mm/s is 0.17
 of that at 24 mm/s). The unloaded rig's friction is not separable from the driver's own
 speed-dependent losses on one speed profile; both sit in k_1 and k_2. A current sample is
@@ -45,14 +45,31 @@ Outputs per sample: ``position`` x_n [m], ``position_error`` x_sp - x_n [m], ``c
 on the set point (``x_n = x_m = x_sp(0)``, v = 0, I = 0).
 
 Unmodelled effects (:data:`EFFECTS`) switch into the same kernel by flags; at their ``off``
-values the kernel reproduces the nominal outputs bit for bit. ``backlash`` (undersized balls:
-play and a change of the ball-contact friction, which scales with preload + |load|) and
-``friction_increase`` (a drag that does not depend on the load, only ever higher: lost grease,
-a tightened seal) are the seeded faults; ``current_gain`` and ``current_offset`` (Hall-sensor
-drift) are alternatives a diagnosis must reject. The friction changes may differ with the
-sign of the load: in every fault set of the rig the moving current changes by 0.04-0.26 A
-under +20 and +40 kgf and by at most 0.015 A under -40 kgf (per-run means), so the two
-load senses, which bear on opposite flanks of the ball track, get one value each.
+values the kernel reproduces the nominal outputs bit for bit. One mechanism per candidate, each
+its own family, no candidate carrying another's parameters, each parameter bounded by its
+physics:
+
+- ``backlash``: play of total width b >= 0 between screw and nut, nothing else (lost motion
+  at a reversal, and no force delivered while the play is crossed);
+- ``contact_friction``: a change of the ball-contact friction, which scales with the normal
+  load on the balls, preload + |F_load|; signed (lost preload lowers it, a damaged track
+  raises it), one coefficient per load sense, since the two senses bear on opposite flanks of
+  the ball track;
+- ``lubrication_loss``: more friction in the lubricated ball contact, only ever higher: a
+  Coulomb drag >= 0 per load sense (the loaded flank carries the grease film that thins) and
+  a viscous drag >= 0 growing with the speed;
+- ``seal_drag``: a wiper seal rubbing on the screw: a drag >= 0 that knows neither the load
+  nor its sense (one value for both, no speed term). It is a special case of
+  ``lubrication_loss`` (equal Coulomb drags, no viscous part) and is kept as a candidate of
+  its own because the load-sense symmetry is a physical distinction the records can test:
+  where both senses change alike the one-parameter form wins on BIC, where they do not it
+  fails;
+- ``current_gain``, ``current_offset``: drift of the Hall current sensor's gain and zero.
+
+The per-load-sense values rest on the flank argument above; the records are consistent with
+it (in every fault set the moving current changes by 0.04-0.26 A under +20 and +40 kgf and by
+at most 0.015 A under -40 kgf, per-run means), and that asymmetry is also what sets
+``seal_drag`` apart from ``lubrication_loss`` on them.
 """
 from __future__ import annotations
 
@@ -74,14 +91,16 @@ G0 = 9.80665
 (P_KP, P_KI, P_TAU, P_I_REST, P_I_RUN, P_K1, P_K2, P_K_W, P_V_P, P_MU) = range(10)
 
 # --- effect parameters, positions in the kernel's full parameter vector -----------------
-(E_PLAY, E_PLAY_MU, E_PLAY_MU_NEG, E_DC, E_DC_NEG, E_GAIN, E_OFFSET) = range(10, 17)
-N_FULL = 17
+(E_PLAY, E_CMU_POS, E_CMU_NEG, E_DC_POS, E_DC_NEG, E_CV, E_SEAL, E_GAIN, E_OFFSET) = range(10, 19)
+N_FULL = 19
 
 # --- effect flags (bits of the kernel's ``flags`` argument) -----------------------------
 F_BACKLASH = 1
-F_FRICTION = 2
-F_CURRENT_GAIN = 4
-F_CURRENT_OFFSET = 8
+F_CONTACT = 2
+F_LUBRICATION = 4
+F_SEAL = 8
+F_CURRENT_GAIN = 16
+F_CURRENT_OFFSET = 32
 
 # --- design constants and settings, kernel positions ------------------------------------
 (C_V_RUN, C_V_EPS, C_PRELOAD) = range(3)
@@ -141,10 +160,12 @@ def _current(u, driven, load, th, c, flags):
     force = th[P_MU] * abs(load) - load * sign
     # a change in the nut may differ with the load's sign (the two flanks of the ball track)
     side = 0 if load >= 0.0 else 1
-    if flags & F_BACKLASH:
-        force += th[E_PLAY_MU + side] * (c[C_PRELOAD] + abs(load))
-    if flags & F_FRICTION:
-        force += th[E_DC + side]
+    if flags & F_CONTACT:
+        force += th[E_CMU_POS + side] * (c[C_PRELOAD] + abs(load))
+    if flags & F_LUBRICATION:
+        force += th[E_DC_POS + side] + th[E_CV] * abs_u
+    if flags & F_SEAL:
+        force += th[E_SEAL]
     shape = abs_u * (1.0 + abs_u / th[P_V_P])
     i = (th[P_I_REST] + th[P_I_RUN] * math.tanh(abs_u / c[C_V_RUN]) + th[P_K1] * abs_u + th[P_K2] * u * u
          + th[P_K_W] * driven * shape * force)
@@ -223,31 +244,45 @@ def _simulate_batch(thetas, c, flags, x_sp, load, dt, n_sub, out):
 EFFECTS: dict[str, Effect] = {e.name: e for e in (
     Effect(
         "backlash",
-        "balls smaller than the track of the preloaded nut (the seeded backlash): the nut follows the screw "
-        "through a play of total width b (after a reversal the motor travels b before the carriage moves, the "
-        "potentiometer loop lags by up to b, and no force is delivered while the play is crossed), and the "
-        "balls meet the track at another contact angle and conformity, so the ball-contact friction, which "
-        "grows with the normal load on the balls (the nut's preload plus the carried load), changes in either "
-        "sign: dmu_pos (preload + |F_load|) under a positive load, dmu_neg (preload + |F_load|) under a "
-        "negative one (they bear on opposite flanks of the track)",
-        (Parameter("backlash_play", "m", 5e-4, 0.0, 5e-3, description="total axial play (lost motion) of the nut"),
-         Parameter("backlash_dmu_pos", "1", 0.0, -2.0, 2.0,
-                   description="change of the ball-contact friction coefficient, positive load"),
-         Parameter("backlash_dmu_neg", "1", 0.0, -2.0, 2.0,
-                   description="change of the ball-contact friction coefficient, negative load")),
-        start={"backlash_play": 1e-4, "backlash_dmu_pos": 0.05, "backlash_dmu_neg": 0.05},
-        off={"backlash_play": 0.0, "backlash_dmu_pos": 0.0, "backlash_dmu_neg": 0.0},
+        "play between screw and nut (undersized balls in the preloaded nut): the nut follows the screw through "
+        "a play of total width b, so after a reversal the motor travels b before the carriage moves, the "
+        "potentiometer loop lags by up to b, and no force is delivered while the play is crossed; it shows "
+        "first in the position error at the reversals",
+        (Parameter("backlash_play", "m", 5e-4, 0.0, 5e-3, description="total axial play (lost motion) of the nut"),),
+        start={"backlash_play": 1e-4}, off={"backlash_play": 0.0},
         signature=("reversal", "direction", "low_speed")),
     Effect(
-        "friction_increase",
-        "more friction in screw and nut (lost lubrication, a tightened seal): a drag the drive delivers while "
-        "moving, dC_pos >= 0 under a positive load and dC_neg >= 0 under a negative one (they bear on opposite "
-        "flanks of the ball track); it raises the current and leaves the position loop alone",
-        (Parameter("friction_increase_dC_pos", "N", 100.0, 0.0, 5e3, description="added friction under a positive load"),
-         Parameter("friction_increase_dC_neg", "N", 100.0, 0.0, 5e3, description="added friction under a negative load")),
-        start={"friction_increase_dC_pos": 20.0, "friction_increase_dC_neg": 20.0},
-        off={"friction_increase_dC_pos": 0.0, "friction_increase_dC_neg": 0.0},
+        "contact_friction",
+        "a change of the ball-contact friction (lost preload lowers it, a worn or pitted track raises it): "
+        "the friction coefficient of the balls changes by dmu_pos under a positive load and dmu_neg under a "
+        "negative one (the two senses bear on opposite flanks of the track), acting on the normal load of the "
+        "balls, preload + |F_load|; it raises or lowers the moving current and leaves the position loop alone; "
+        "|dmu| <= 1, since a sliding steel-on-steel friction coefficient stays below 1 even dry",
+        (Parameter("contact_friction_dmu_pos", "1", 0.0, -1.0, 1.0,
+                   description="change of the ball-contact friction coefficient, positive load"),
+         Parameter("contact_friction_dmu_neg", "1", 0.0, -1.0, 1.0,
+                   description="change of the ball-contact friction coefficient, negative load")),
+        start={"contact_friction_dmu_pos": 0.05, "contact_friction_dmu_neg": 0.05},
+        off={"contact_friction_dmu_pos": 0.0, "contact_friction_dmu_neg": 0.0},
         signature=("high_load", "direction")),
+    Effect(
+        "lubrication_loss",
+        "lost lubrication of the ball contact: a Coulomb drag dC_pos >= 0 under a positive load and dC_neg >= 0 "
+        "under a negative one (the loaded flank's grease film thins) plus a viscous drag c_v |v| >= 0; only ever "
+        "more friction, whatever the load; it raises the moving current and leaves the position loop alone",
+        (Parameter("lubrication_loss_dC_pos", "N", 100.0, 0.0, 5e3, description="added Coulomb drag under a positive load"),
+         Parameter("lubrication_loss_dC_neg", "N", 100.0, 0.0, 5e3, description="added Coulomb drag under a negative load"),
+         Parameter("lubrication_loss_c_v", "N s/m", 1e3, 0.0, 1e6, description="added viscous drag per carriage speed")),
+        start={"lubrication_loss_dC_pos": 20.0, "lubrication_loss_dC_neg": 20.0, "lubrication_loss_c_v": 200.0},
+        off={"lubrication_loss_dC_pos": 0.0, "lubrication_loss_dC_neg": 0.0, "lubrication_loss_c_v": 0.0},
+        signature=("high_load", "direction")),
+    Effect(
+        "seal_drag",
+        "a wiper seal rubbing on the screw: a drag dC >= 0 the drive delivers while moving, the same under any "
+        "load and either load sense, independent of the speed",
+        (Parameter("seal_drag_dC", "N", 100.0, 0.0, 5e3, description="added drag of the seal"),),
+        start={"seal_drag_dC": 20.0}, off={"seal_drag_dC": 0.0},
+        signature=("direction",)),
     Effect(
         "current_gain",
         "drift of the Hall current sensor's gain: every current sample scaled by 1 + g (standstill current included)",
@@ -263,13 +298,14 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
 )}
 
 #: kernel flag of each effect
-_FLAGS = {"backlash": F_BACKLASH, "friction_increase": F_FRICTION, "current_gain": F_CURRENT_GAIN,
-          "current_offset": F_CURRENT_OFFSET}
+_FLAGS = {"backlash": F_BACKLASH, "contact_friction": F_CONTACT, "lubrication_loss": F_LUBRICATION,
+          "seal_drag": F_SEAL, "current_gain": F_CURRENT_GAIN, "current_offset": F_CURRENT_OFFSET}
 #: Kernel position of every parameter name a Cranfield model may carry.
 _KERNEL_INDEX = {"kp": P_KP, "ki": P_KI, "tau": P_TAU, "i_rest": P_I_REST, "i_run": P_I_RUN, "k_1": P_K1,
                  "k_2": P_K2, "k_w": P_K_W, "v_p": P_V_P, "mu": P_MU, "backlash_play": E_PLAY,
-                 "backlash_dmu_pos": E_PLAY_MU, "backlash_dmu_neg": E_PLAY_MU_NEG,
-                 "friction_increase_dC_pos": E_DC, "friction_increase_dC_neg": E_DC_NEG,
+                 "contact_friction_dmu_pos": E_CMU_POS, "contact_friction_dmu_neg": E_CMU_NEG,
+                 "lubrication_loss_dC_pos": E_DC_POS, "lubrication_loss_dC_neg": E_DC_NEG,
+                 "lubrication_loss_c_v": E_CV, "seal_drag_dC": E_SEAL,
                  "current_gain_error": E_GAIN, "current_offset_di": E_OFFSET}
 #: The kernel's full parameter vector with every effect off (base entries overwritten per call).
 _OFF_VALUES = off_vector(EFFECTS, _KERNEL_INDEX, N_FULL)
