@@ -5,7 +5,8 @@ load gives the same error, in any record. Coloured sensor noise, drift and other
 are not: learnt on one record, they predict nothing on another. So a linear black-box model of
 the residual — regressors: the nominal model's noise-free outputs, the inputs, their time
 derivatives and a smoothed sign of each (friction, play and direction effects switch with the
-sign of a speed or force) — is fitted by ridge least squares on the estimation records and
+sign of a speed or force) — is fitted by ridge least squares on the estimation records (the
+penalty chosen by a time split of them) and
 predicts the held-out residual (:func:`state_predictable`). The *predictable share* is the part
 of the held-out systematic energy it removes; its z (the removed energy over the white-noise
 standard deviation of that energy) says whether the gap is a model error the state explains.
@@ -24,8 +25,8 @@ import numpy as np
 
 from .localize import LAG_NORM, LocalizationError, ResidualRecord, systematic_products
 
-#: ridge penalty, relative to the mean diagonal of the regressors' Gram matrix
-RIDGE = 1e-6
+#: ridge penalties tried, relative to the mean diagonal of the regressors' Gram matrix
+PENALTIES = (1e-6, 1e-4, 1e-2, 1.0, 100.0)
 #: a smoothed sign reaches ±0.76 at this fraction of the signal's peak magnitude
 SIGN_SCALE = 0.05
 
@@ -45,6 +46,23 @@ class Predictable:
 
 def _finite(x: float) -> float | None:
     return float(x) if np.isfinite(x) else None
+
+
+def _ridge(a: np.ndarray, y: np.ndarray, penalty: float) -> np.ndarray:
+    gram = a.T @ a
+    scale = np.trace(gram) / gram.shape[0]
+    return np.linalg.solve(gram + penalty * scale * np.eye(gram.shape[0]), a.T @ y)
+
+
+def _penalty(a: np.ndarray, y: np.ndarray) -> float:
+    """The ridge penalty of ``PENALTIES`` that predicts best across a time split of the estimation
+    samples (first half fits, second predicts, and back): the regression must transfer to data it
+    did not see, or it would call a disturbance it memorised predictable."""
+    half = a.shape[0] // 2
+    folds = ((slice(0, half), slice(half, None)), (slice(half, None), slice(0, half)))
+    errors = [sum(float(np.sum((y[test] - a[test] @ _ridge(a[train], y[train], p)) ** 2)) for train, test in folds)
+              for p in PENALTIES]
+    return PENALTIES[int(np.argmin(errors))]
 
 
 def regressors(record: ResidualRecord, scale: np.ndarray | None = None) -> np.ndarray:
@@ -72,8 +90,7 @@ def state_predictable(estimation: Sequence[ResidualRecord], held: Sequence[Resid
     if not keep.any() or a.shape[0] < 10 * keep.sum():
         return Predictable(float("nan"), float("nan"), int(keep.sum()))
     a = np.column_stack([np.ones(a.shape[0]), (a[:, keep] - centre[keep]) / width[keep]])
-    gram = a.T @ a
-    beta = np.linalg.solve(gram + RIDGE * np.trace(gram) / gram.shape[0] * np.eye(gram.shape[0]), a.T @ y)
+    beta = _ridge(a, y / spread, _penalty(a, y / spread)) * spread
 
     def predicted(r: ResidualRecord) -> np.ndarray:
         f = regressors(r, scale)
