@@ -5,9 +5,11 @@ binds one ``_run_<verb>(args) -> str`` handler; adding a verb means writing that
 listing the register function in :data:`VERBS`. Handlers only translate arguments into
 package calls and files; the numerics live in the package.
 
-Every expected failure (a ``ValueError`` from the package, such as :class:`~ema_uq.io.DataFileError`,
-``ParameterError`` or ``ExperimentError``, an ``OSError``, or a bad argument) ends the
-program with one line ``ema-uq: error: <message>`` on stderr and exit status 2. Success
+Every expected failure (an :class:`~ema_uq.errors.EmaUqError` from the package, such as
+:class:`~ema_uq.io.DataFileError`, ``ParameterError`` or ``ExperimentError``, a file that
+is missing or may not be read or written, or a bad argument) ends the program with one line
+``ema-uq: error: <message>`` on stderr and exit status 2. Any other exception is a fault of
+the package: its traceback is shown with a request to report it, exit status 3. Success
 prints a one-line summary on stdout and exits 0.
 """
 from __future__ import annotations
@@ -15,9 +17,11 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+import traceback
 from typing import Callable, Sequence
 
 from . import __version__
+from .errors import FILE_ACCESS_ERRORS, EmaUqError
 
 PROG = "ema-uq"
 #: answers of ``identify --unidentifiable`` (ema_uq.identify.UNIDENTIFIABLE_MODES; not imported
@@ -25,9 +29,12 @@ PROG = "ema-uq"
 UNIDENTIFIABLE_MODES = ("fix", "error")
 EXIT_OK = 0
 EXIT_ERROR = 2
+EXIT_BUG = 3
+BUG_REPORT = (f"{PROG}: this is a fault of {PROG} {__version__}, not of your input; please report it "
+              "with the command line and the traceback above")
 
 
-class CLIError(ValueError):
+class CLIError(EmaUqError):
     """A command-line value that the package cannot use."""
 
 
@@ -946,17 +953,21 @@ def _apply_study(args: argparse.Namespace, given: set[str]) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run one verb; returns the exit status (0 success, 2 bad input)."""
+    """Run one verb; returns the exit status (0 success, 2 bad input, 3 a fault of the package)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
         _apply_study(args, _given_options(argv))
         summary = args.handler(args)
-    except (ValueError, OSError) as exc:
+    except (EmaUqError, *FILE_ACCESS_ERRORS) as exc:
         if args.traceback:
             raise
         _print_error(exc)
         return EXIT_ERROR
+    except Exception:  # noqa: BLE001 - a fault of the package: shown whole, never as a user error
+        traceback.print_exc()
+        print(BUG_REPORT, file=sys.stderr)
+        return EXIT_BUG
     if summary:
         print(summary)
     return EXIT_OK

@@ -43,6 +43,7 @@ from .experiments import Measurement
 from .identify import FitProblem, IdentificationError, Settings, covariance, estimate
 from .identify.estimators import FD_RELATIVE_STEP
 from .models import Model, get_model
+from .errors import EmaUqError
 
 #: objective rise of the 95 % profile interval: χ²₁(0.95)/2 on V = (N/2) log det R + prior
 PROFILE_THRESHOLD = float(chi2.ppf(0.95, 1) / 2.0)
@@ -66,7 +67,7 @@ GAMMA_CAP = 1e12
 VERDICTS = ("identifiable", "practically_non_identifiable", "structurally_non_identifiable")
 
 
-class IdentifiabilityError(ValueError):
+class IdentifiabilityError(EmaUqError):
     """Bad input to the identifiability analysis (unknown sensor set or parameter, no free
     parameter, data without the channels of a sensor set)."""
 

@@ -54,6 +54,7 @@ import numpy as np
 from .experiments import Experiment, ExperimentError, Measurement, check_time_grid
 from .models import get_model
 from .params import ParameterError
+from .errors import EmaUqError
 
 __all__ = [
     "DataFileError", "FORMATS", "data_format", "prepare_output", "write_measurement", "read_measurement",
@@ -72,7 +73,7 @@ _HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
 _NETCDF3_MAGIC = b"CDF"
 
 
-class DataFileError(ValueError):
+class DataFileError(EmaUqError):
     """A data or result file that cannot be read, written or does not meet the file contract."""
 
 

@@ -38,6 +38,7 @@ import numpy as np
 from .experiments import Experiment, get_experiment, synthesize
 from .models import Model, get_model
 from .simulate import simulate_batch
+from .errors import EmaUqError
 
 #: scalar QoI kinds of the study schema, in report order
 QOI_KINDS = ("cost", "rms", "tracking_error", "peak_torque", "peak_current", "energy")
@@ -55,7 +56,7 @@ INTEGRATOR = "hybrid"
 _QOI_UNITS = {"cost": "1", "tracking_error": "m", "peak_torque": "N m", "peak_current": "A", "energy": "J"}
 
 
-class SensitivityError(ValueError):
+class SensitivityError(EmaUqError):
     """A sensitivity study that cannot run: bad design size, unknown names, chunks that do not
     belong together or parameter sets the simulator cannot integrate."""
 

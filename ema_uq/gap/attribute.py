@@ -128,6 +128,7 @@ from ..simulate import SimulationError, simulate_batch
 from .localize import ResidualRecord, complete_runs, noise_std
 from .result import CandidateScore, GapResult
 from .strategy import DiagnosisSettings, DiagnosisStrategy, Thresholds, strategy_for
+from ..errors import EmaUqError
 
 _DEFAULT = Thresholds()
 BIC_MIN = _DEFAULT.bic_min
@@ -154,7 +155,7 @@ __all__ = ["CandidateScore", "DiagnosisSettings", "DiagnosisStrategy", "GapError
            "split_holdout"]
 
 
-class GapError(ValueError):
+class GapError(EmaUqError):
     """Data the gap diagnosis cannot use (concept mismatch, no common channel, no catalogue)."""
 
 

@@ -23,9 +23,10 @@ from ..params import ParameterSet
 from ..simulate import simulate_batch
 from .. import statistics
 from ..statistics import covariance, log_det, rig_terms
+from ..errors import EmaUqError
 
 
-class IdentificationError(ValueError):
+class IdentificationError(EmaUqError):
     """Bad estimation input (wrong concept, no usable channel, start outside bounds) or
     a problem the data cannot answer (singular information matrix)."""
 
