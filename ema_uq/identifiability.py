@@ -442,7 +442,7 @@ def profile_likelihood(measurements: Sequence[Measurement], model: Model, channe
             else:
                 problem = FitProblem(measurements, parameters=model.parameters, channels=channels, constants=constants)
                 res = problem.residuals(start)[0]
-                v = _objective(problem, start, statistics.log_det(statistics.covariance(res)))
+                v = _objective(problem, start, statistics.log_det_r(statistics.covariance(res)))
                 n_sims += 1
             values.append(g)
             objectives.append(v)

@@ -35,6 +35,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from . import statistics
 from .experiments import Experiment, get_experiment, synthesize
 from .models import Model, get_model
 from .simulate import simulate_batch
@@ -405,9 +406,7 @@ def _qoi_batch(setup: SensitivitySetup, thetas: np.ndarray, out: np.ndarray, nom
     for kind in setup.qoi_kinds:
         if kind == "cost":
             e = setup.reference[None] - out[:, :, model.output_index(setup.reference_channels)]
-            r = np.matmul(e.transpose(0, 2, 1), e) / e.shape[1]
-            sign, logdet = np.linalg.slogdet(r)
-            cols.append(np.where(sign > 0, logdet, np.nan))
+            cols.append(statistics.log_det_r(statistics.covariance(e)))  # singular R: +inf, refused by sobol_indices
         elif kind == "rms":
             idx = model.output_index(setup.rms_channels)
             rms = np.sqrt(np.mean((out[:, :, idx] - nominal_out[None, :, idx]) ** 2, axis=1))
