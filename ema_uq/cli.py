@@ -118,43 +118,24 @@ def _model_vectors(model, assignments: Sequence[str]):
 # --------------------------------------------------------------------------------------
 # unmodelled effects: the one place where --effect meets the simulator
 # --------------------------------------------------------------------------------------
-def parse_effect(spec: str) -> tuple[str, dict[str, float]]:
-    """``NAME[:param=value,...]`` -> (name, {param: value}); e.g. ``backlash:delta=0.002``."""
-    name, _, rest = spec.partition(":")
-    name = name.strip()
-    if not name:
-        raise CLIError(f"cannot read --effect {spec!r}: write NAME[:param=value,...], e.g. backlash:delta=0.002")
-    settings: dict[str, float] = {}
-    for item in filter(None, (s.strip() for s in rest.split(","))):
-        key, sep, value = item.partition("=")
-        try:
-            if not sep or not key.strip():
-                raise ValueError
-            settings[key.strip()] = float(value)
-        except ValueError:
-            raise CLIError(f"cannot read --effect {spec!r} at {item!r}: write NAME[:param=value,...] "
-                           "with numeric values, e.g. backlash:delta=0.002") from None
-    return name, settings
-
-
 def _resolve_effects(model, specs: Sequence[str]):
     """Turn ``--effect`` items into (augmented model, {effect: {parameter: value}}).
 
-    Names come from the concept's catalogue (models/effects.py); parameters may be given by
-    short (``delta``) or full (``backlash_delta``) name, unnamed ones keep the effect's
-    nominal value. Without ``--effect`` the nominal model comes back unchanged.
+    Each item is read by :func:`ema_uq.models.effects.parse_effect` against the concept's
+    catalogue (names, short or full parameter names, finite numbers); unnamed parameters keep
+    the effect's nominal value. Without ``--effect`` the nominal model comes back unchanged.
     """
-    requested = [parse_effect(spec) for spec in specs]
-    if not requested:
+    from .models.effects import EffectError, parse_effect
+
+    if not specs:
         return model, {}
-    catalogue = model.effect_catalogue
     names, values = [], {}
-    for name, settings in requested:
-        if name not in catalogue:
-            raise CLIError(f"unknown effect {name!r} for concept {model.name}; the catalogue has: "
-                           f"{', '.join(catalogue) or 'none'}")
-        for key, value in settings.items():
-            values[catalogue[name].full_name(key)] = value
+    for spec in specs:
+        try:
+            name, settings = parse_effect(spec, model.effect_catalogue)
+        except EffectError as exc:
+            raise CLIError(f"--effect of concept {model.name}: {exc}") from None
+        values.update(settings)
         names.append(name)
     augmented = model.with_effects(names, values)
     return augmented, {n: {p.name: p.nominal for p in augmented.parameters if p.name.startswith(n + "_")}
