@@ -55,7 +55,9 @@ def _held_parameters(fits: dict) -> list[str]:
             continue
         rule = (f.get("unidentifiable") or {}).get("rule") or ""
         parts.append(f"<h3>{k}: parameters held (the channels cannot determine them)</h3>"
-                     f"<p>Rule: {html.escape(rule)}. Held values carry no bound.</p>")
+                     f"<p>Rule: {html.escape(rule)}. Held values carry no bound; the member left free in a "
+                     "lumped group carries the group, so its value is the group's combination less the held "
+                     "values and its σ holds only given them: the combination's σ is the bound.</p>")
         parts.append(_table(["parameter", "held at", "reason"],
                             [[n, _fmt(r["value"], 6), html.escape(r["reason"])] for n, r in f["fixed"].items()]))
         parts.append(_table(["identifiable combination", "value", "CRB σ", "95 % interval"],
@@ -82,9 +84,12 @@ def _identification_section(study: dict, results: Path) -> tuple[str, dict]:
     for i, n in enumerate(names):
         est = [fits[k]["parameters"][n]["estimate"] for k in fits]
         std = [fits[k]["parameters"][n]["std"] for k in fits]
-        z = [((e - truth[i]) / s) if s else None for e, s in zip(est, std)]
+        # the member that carries a lumped group: its σ holds only given the held members
+        kept = [fits[k]["parameters"][n].get("role") == "kept" for k in fits]
+        z = [((e - truth[i]) / s) if s and not c else None for e, s, c in zip(est, std, kept)]
         rows.append([n, model.parameters[n].unit] + ([_fmt(truth[i])] if synthetic else [])
-                    + [_fmt(e, 6) for e in est] + [_fmt(s, 3) for s in std]
+                    + [_fmt(e, 6) for e in est]
+                    + [f"{_fmt(s, 3)} (given the held)" if c else _fmt(s, 3) for s, c in zip(std, kept)]
                     + ([_fmt(v, 2) for v in z] if synthetic else []))
     summary_rows = [[k, "yes" if f["converged"] else '<span class="flag">no</span>', f["iterations"],
                      f["n_simulations"], f"{f['wall_time_s']:.2f}", _fmt(f["log_det_R"], 8),
@@ -413,7 +418,7 @@ def _estimate_findings(study: dict, results: Path, fits: dict) -> list[str]:
         truth = dict(zip(model.parameters.names, model.parameters.vector(study["data"].get("set", {}))))
         for k, f in fits.items():
             z = {n: abs(p["estimate"] - truth[n]) / p["std"] for n, p in f["parameters"].items()
-                 if n in truth and p.get("std") and np.isfinite(p["std"]) and p["std"] > 0}
+                 if n in truth and p.get("std") and np.isfinite(p["std"]) and p["std"] > 0 and p.get("role") != "kept"}
             if z:
                 worst = max(z, key=z.get)
                 state = "converged" if f["converged"] else '<span class="flag">not converged</span>'
