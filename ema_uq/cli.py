@@ -269,6 +269,7 @@ def _run_identify(args: argparse.Namespace) -> str:
     from .identify.validation import validate
     from .models import get_model
     from .provenance import provenance
+    from .rigs import rig_of
 
     model = get_model(args.concept)
     theta, constants = _model_vectors(model, args.set)
@@ -287,10 +288,9 @@ def _run_identify(args: argparse.Namespace) -> str:
     out = fit.to_json()
     out["validation"] = [validate(fit.estimate, m, channels=problem.channels, constants=constants).to_json()
                          for m in validation_data]
-    if model.name == "emps":  # the report's table beside the published identification
-        from .emps_benchmark import emps_comparison
-
-        out["published_comparison"] = emps_comparison(fit, measurements[0], next(iter(validation_data), None)).to_json()
+    rig = rig_of(model.name)
+    if rig is not None and rig.published_comparison is not None:  # the report's table beside the published values
+        out["published_comparison"] = rig.published_comparison(fit, measurements[0], next(iter(validation_data), None))
     io.write_json(args.out, out)
     _write_fit_outputs(args.out, model, fit.estimate, problem.channels, constants,
                        [("estimation", m) for m in measurements] + [("validation", m) for m in validation_data])
@@ -308,15 +308,16 @@ def _write_fit_outputs(fit_json: str, model, theta, channels, constants, records
     """Measured and predicted outputs of every (role, measurement) record beside FIT.json, so the
     report draws the fit without simulating (:mod:`ema_uq.report.outputs`)."""
     from .report.outputs import fit_outputs_path, write_fit_outputs
+    from .rigs import rig_of
     from .simulate import simulate_batch
 
+    rig = rig_of(model.name)
+    own = rig.record_constants if rig is not None else None  # records that carry their own (EMPS: gains, start)
     rows = []
     for role, m in records:
         names = [c for c in m.channels if c in channels]
-        if model.name == "emps":  # EMPS records carry their own gains and start
-            from .models.emps import constants_for
-
-            constants = constants_for(m)
+        if own is not None:
+            constants = own(m)
         predicted = simulate_batch(model, theta, m.time, m.experiment.input_matrix(model), constants=constants)
         rows.append({"role": role, "experiment": m.experiment.name, "channels": names,
                      "units": [model.unit_of(c) for c in names], "time": m.time,
@@ -702,8 +703,14 @@ def _run_gap(args: argparse.Namespace) -> str:
                                    settings={k: v for k, v in vars(args).items() if k != "handler"})
     io.write_json(args.out, result.to_json())
     tail = ""
-    if args.figure:
-        strategy.figure(result, validation_data or measurements).savefig(args.figure, dpi=110)
+    if args.figure:  # the rig's own figure where it has one (its study computes the arrays), else the ledger
+        from .report.gap_figures import gap_figure
+        from .rigs import rig_of
+
+        rig = rig_of(model.name)
+        data = (rig.gap_figure_data(result, validation_data or measurements)
+                if rig is not None and rig.gap_figure_data is not None else None)
+        gap_figure(model.name, result, data).savefig(args.figure, dpi=110)
         tail = f", ledger {args.figure}"
     what = {"effect": f"effect {result.effect} ({result.confidence} confidence)", "none": "no significant gap",
             "unexplained": "unexplained gap"}[result.verdict]
@@ -787,10 +794,12 @@ def _run_fault_diagnosis(args: argparse.Namespace) -> str:
     from . import io
     from .cranfield import CHANNELS, run_study
     from .provenance import provenance
+    from .rigs import rig_of
     from .study import load_study
 
     study = load_study(args.study)
-    if study["concept"] != "cranfield":
+    rig = rig_of(study["concept"])
+    if rig is None or not rig.fault_diagnosis:
         raise CLIError(f"{args.study} is a study of concept {study['concept']}; fault-diagnosis needs a "
                        "study of concept cranfield")
     channels = tuple(study["data"].get("channels") or CHANNELS)

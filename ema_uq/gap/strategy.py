@@ -114,13 +114,6 @@ def localize_residual(records, channels, model, theta, measurements, spread, con
     return localize(records, channels, model, theta, constants=constants, spread=spread)
 
 
-def ledger_figure(result, held_out: Sequence[Measurement]):
-    """The default gap figure: the ledger of :func:`ema_uq.report.gap_figures.gap_ledger`."""
-    from ..report.gap_figures import gap_ledger
-
-    return gap_ledger(result)
-
-
 @dataclass(frozen=True)
 class DiagnosisStrategy:
     """What the gap diagnosis does differently for one concept.
@@ -143,7 +136,6 @@ class DiagnosisStrategy:
     hold_base : fault diagnosis: base parameters held (at ``reference_fit``, else nominal);
         the nominal model is evaluated, not fitted, and every candidate refit frees only its
         effect's parameters.
-    figure : ``(GapResult, held-out measurements) -> matplotlib Figure`` of ``ema-uq gap --figure``.
     replicate_prediction : for records that repeat one experiment (the same cycle, run after
         run), ``(estimation measurements, their nominal residuals, estimation channels,
         held-out measurements, held-out channels) -> [(n_i, m)] | None``: the held-out residual
@@ -167,7 +159,6 @@ class DiagnosisStrategy:
     thresholds: Thresholds = Thresholds()
     reference_fit: Mapping[str, float] | None = None
     hold_base: bool = False
-    figure: Callable[..., Any] = ledger_figure
     replicate_prediction: Callable[..., list[np.ndarray] | None] | None = None
 
     def __post_init__(self) -> None:

@@ -16,6 +16,7 @@ import numpy as np
 from .. import io
 from ..models import get_model
 from ..provenance import file_sha256, settings_hash
+from ..rigs import is_measured, rig_of
 from . import figures
 from .outputs import fit_outputs_path, read_fit_outputs
 
@@ -43,9 +44,6 @@ def _img(fig, alt: str) -> str:
     return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{figures.to_png_base64(fig)}">'
 
 
-SYNTHETIC_CONCEPTS = ("htls", "lths")
-
-
 def _held_parameters(fits: dict) -> list[str]:
     """Parameters a fit held because its channels cannot determine them, and the identifiable
     combinations it reports instead (FIT.json ``fixed``, ``combinations``)."""
@@ -68,7 +66,7 @@ def _held_parameters(fits: dict) -> list[str]:
 
 def _identification_section(study: dict, results: Path) -> tuple[str, dict]:
     model = get_model(study["concept"])
-    synthetic = model.name in SYNTHETIC_CONCEPTS
+    synthetic = not is_measured(model.name)
     fits = {}
     for method in study["identify"]["methods"]:
         path = results / f"fit_{method}.json"
@@ -155,7 +153,7 @@ def _posterior_section(study: dict, results: Path) -> str:
         return '<p class="muted">Posterior not sampled.</p>'
     post = PosteriorResult.from_netcdf(path)
     model = get_model(study["concept"])
-    synthetic = model.name in SYNTHETIC_CONCEPTS  # measured data have no truth
+    synthetic = not is_measured(model.name)  # measured data have no truth
     truth = dict(zip(model.parameters.names, model.parameters.vector(study["data"].get("set", {}))))
     table = post.summary()
     hdi_lo, hdi_hi = [c for c in table.columns if c.startswith("hdi_")][:2]
@@ -324,7 +322,7 @@ def _gap_section(study: dict, results: Path) -> str:
              + (f" (confidence {html.escape(str(gap['confidence']))})" if gap.get("confidence") else "") + ". "
              + f"The gap lies in channels {html.escape(', '.join(gap['where'].get('channels', [])) or '–')} and "
                f"regimes {html.escape(', '.join(gap['where'].get('regimes', [])) or '–')}.</p>"]
-    if study["concept"] in SYNTHETIC_CONCEPTS:
+    if not is_measured(study["concept"]):
         truth = ", ".join(hidden) if hidden else "none (the rig-like records are nominal-model data)"
         parts.append(f"<p>Check of this study: the rig-like records were generated with the hidden effect(s) "
                      f"<b>{html.escape(truth)}</b>; the diagnosis did not see them.</p>")
@@ -414,7 +412,7 @@ def _estimate_findings(study: dict, results: Path, fits: dict) -> list[str]:
     (EMPS, the published IDIM-LS values)."""
     model = get_model(study["concept"])
     items = []
-    if model.name in SYNTHETIC_CONCEPTS:
+    if not is_measured(model.name):
         truth = dict(zip(model.parameters.names, model.parameters.vector(study["data"].get("set", {}))))
         for k, f in fits.items():
             z = {n: abs(p["estimate"] - truth[n]) / p["std"] for n, p in f["parameters"].items()
@@ -581,16 +579,9 @@ def _provenance_section(study: dict, study_path: Path, results: Path, fits: dict
     for f in sorted(results.rglob("*")):
         if f.is_file() and f.suffix in (".nc", ".csv", ".mat") and "logs" not in f.parts:
             rows.append([f"sha256 {html.escape(str(f.relative_to(results)))}", file_sha256(f)[:32] + "…"])
-    if study["concept"] == "emps":
-        try:
-            for role, f in io.emps_files(study).items():
-                rows.append([f"sha256 {html.escape(f.name)} ({role}, measured)", file_sha256(f)[:32] + "…"])
-        except io.DataFileError:
-            rows.append(["measured data", "not found"])
-    if study["concept"] == "cranfield":
-        for name in io.CRANFIELD_FILES:
-            f = io.cranfield_file(name, study, must_exist=False)
-            rows.append([f"sha256 {html.escape(f.name)} (measured)", file_sha256(f)[:32] + "…" if f.is_file() else "not found"])
+    rig = rig_of(study["concept"])
+    for label, f in rig.data_files(study) if rig is not None else ():
+        rows.append([f"sha256 {html.escape(label)}", file_sha256(f)[:32] + "…" if f.is_file() else "not found"])
     for k, fit in fits.items():
         rows.append([f"{k} fit created", html.escape(str(fit.get("provenance", {}).get("created", "")))])
     return _table(["item", "value"], [[html.escape(str(a)), str(b)] for a, b in rows])
@@ -599,7 +590,8 @@ def _provenance_section(study: dict, study_path: Path, results: Path, fits: dict
 def build_report(study: dict, study_path: str | Path, results: str | Path) -> str:
     """HTML text of the report for ``study`` from the result files in ``results``."""
     results, study_path = Path(results), Path(study_path)
-    if study["concept"] == "cranfield":  # measured fault records: one stage, healthy fit and diagnoses
+    rig = rig_of(study["concept"])
+    if rig is not None and rig.fault_diagnosis:  # measured fault records: one stage, healthy fit and diagnoses
         return _render(study, [("summary", "Summary of findings", _summary_section(study, results, {})),
                                ("faults", "Fault diagnosis of measured records", _faults_section(results)),
                                ("cost", "Time and memory per stage", _stage_cost_section(results)),
@@ -607,10 +599,10 @@ def build_report(study: dict, study_path: str | Path, results: str | Path) -> st
     ident, fits = _identification_section(study, results)
     sections = [("summary", "Summary of findings", _summary_section(study, results, fits)),
                 ("identification", "Maximum-likelihood identification", ident)]
-    if study["concept"] == "emps":
-        sections.append(("emps", "EMPS: ML vs the published identification", _emps_section(study, results)))
+    if rig is not None and rig.published_comparison is not None:
+        sections.append((rig.concept, f"{rig.title}: ML vs the published identification", _emps_section(study, results)))
     sections.append(("posterior", "Bayesian posterior", _posterior_section(study, results)))
-    if study["concept"] in SYNTHETIC_CONCEPTS:
+    if rig is None:  # synthetic data of an EMA concept: Sobol and identifiability of its friction terms
         sections.append(("sobol", "Sobol sensitivity", _sobol_section(results)))
         sections.append(("identifiability", "Identifiability of the friction and damping parameters",
                          _identifiability_section(study, results)))
@@ -620,7 +612,7 @@ def build_report(study: dict, study_path: str | Path, results: str | Path) -> st
         sections.append(("selfcheck", "Blind self-check of the gap diagnosis", _selfcheck_section(results)))
     stages = {"posterior": "Bayesian posterior", "sobol": "Sobol sensitivity",
               "ident": "Identifiability", "gap": "Sim-to-real gap"}
-    if study["concept"] not in SYNTHETIC_CONCEPTS:  # Sobol and identifiability concern the EMA friction terms
+    if rig is not None:  # Sobol and identifiability concern the EMA friction terms
         stages = {k: v for k, v in stages.items() if k in ("posterior", "gap")}
     pending = [title for key, title in stages.items() if not any(results.glob(f"{key}*"))]
     if pending:

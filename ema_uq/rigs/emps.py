@@ -6,7 +6,8 @@ force residual by regime as the localisation).
 
 Everything here is numerics on :class:`~ema_uq.experiments.Measurement` objects (the files
 are read by :func:`ema_uq.io.read_emps`); results are documented objects with
-``summary()``, ``to_json()`` and ``to_pandas()``.
+``summary()``, ``to_json()`` and ``to_pandas()``, and figures get arrays
+(:func:`gap_figure_data`), never a simulation to run.
 
 Simulation-error definition (benchmark scripts ``Simulation_EMPS*.m``): relative 2-norm
 error in percent, 100 ||z - y|| / ||z||, over samples 50..N (MATLAB numbering, i.e. the first
@@ -32,14 +33,16 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .experiments import Measurement
-from .gap.localize import RegimeRms
-from .gap.strategy import DiagnosisSettings, DiagnosisStrategy, Thresholds
-from .identify import FitProblem, FitResult, Settings, estimate
-from .models import Model, get_model
-from .models import emps
-from .simulate import simulate_batch
-from .statistics import speed_regimes
+from ..errors import EmaUqError
+from ..experiments import Measurement
+from ..gap.localize import RegimeRms
+from ..gap.strategy import DiagnosisSettings, DiagnosisStrategy, Thresholds
+from ..identify import FitProblem, FitResult, Settings, estimate
+from ..models import Model, get_model
+from ..models import emps
+from ..simulate import simulate_batch
+from ..statistics import speed_regimes
+from . import Rig
 
 #: Published asymmetric-friction IDIM-LS variant (``Script_IDIM_LS_Asym_Fric.m``, no offset).
 PUBLISHED_ASYMMETRIC = {"M": 95.1540, "Fv+": 166.7061, "Fc+": 20.1440, "Fv-": 240.4236, "Fc-": 20.6277,
@@ -48,6 +51,10 @@ BORDER = 49              # samples dropped at the start (MATLAB n_border = 50)
 FILTER_ORDER = 4
 FILTER_HZ = 100.0
 DEFAULT_CHANNELS = ("qm", "vir")
+
+
+class EmpsError(EmaUqError):
+    """A record or fit of another concept given to the EMPS benchmark."""
 
 
 # --------------------------------------------------------------------------------------
@@ -94,7 +101,7 @@ def simulation_errors(model: Model, theta: np.ndarray, measurement: Measurement,
     """Relative simulation errors [%] of position, velocity, acceleration and force (module
     docstring), plus ``force_rms_N``: the RMS force residual [N] over the same samples."""
     if measurement.concept != "emps":
-        raise ValueError(f"simulation errors by the EMPS definition need an emps measurement, got {measurement.concept}")
+        raise EmpsError(f"simulation errors by the EMPS definition need an emps measurement, got {measurement.concept}")
     y = simulate_record(model, theta, measurement) if outputs is None else outputs
     motion = filtered_motion(measurement)
     out = model.outputs
@@ -240,7 +247,7 @@ def emps_comparison(fit: FitResult, estimation: Measurement | None = None,
     (omitted when not given) at the ML estimate and at the published values, next to the
     benchmark's published figures."""
     if fit.concept != "emps":
-        raise ValueError(f"emps_comparison needs a fit of concept emps, got {fit.concept}")
+        raise EmpsError(f"emps_comparison needs a fit of concept emps, got {fit.concept}")
     rows = []
     for name, unit, ml, ml_std, value, std in _reference_rows(fit):
         diff = ml - value
@@ -380,10 +387,26 @@ def force_residual_by_regime(records, channels, model, theta, measurements, spre
     return RegimeRms.of("vir", np.concatenate(residuals), joined)
 
 
-def _gap_figure(result, held_out: Sequence[Measurement]):
-    from .report.emps_figures import gap_figure
+def _force_residual(effects: Sequence[str], estimate: dict[str, float], record: Measurement) -> np.ndarray:
+    """Measured less simulated force [N] on ``record`` of the model with ``effects`` at ``estimate``."""
+    model = get_model("emps").with_effects(list(effects))
+    theta = model.parameters.vector({n: v for n, v in estimate.items() if n in model.parameters})
+    y = simulate_record(model, theta, record)
+    return measured_force(record) - y[:, model.outputs.index("force")]
 
-    return gap_figure(result, held_out[0])
+
+def gap_figure_data(result, held_out: Sequence[Measurement]) -> dict[str, Any]:
+    """The arrays the EMPS gap figure (:func:`ema_uq.report.emps_figures.gap_figure`) draws,
+    on the first held-out (validation) record of a :class:`~ema_uq.gap.GapResult`: ``time``,
+    the force residual [N] ``before`` (nominal ML) and ``after`` (selected effects, labelled
+    ``after_label``), the ``reference`` position qg [m] and the ``regimes`` masks."""
+    record = held_out[0]
+    before = _force_residual([], result.nominal["estimate"], record)
+    after = (_force_residual(result.after_effects, result.after.estimate, record) if result.after is not None
+             else before)
+    return {"time": record.time, "before": before, "after": after,
+            "after_label": " + ".join(result.after_effects) or "nominal", "reference": record["qg"],
+            "regimes": regime_masks(record)}
 
 
 #: How :func:`ema_uq.gap.diagnose` treats EMPS: channels (qm, vir) with each record's gains and
@@ -399,5 +422,19 @@ EMPS_STRATEGY = DiagnosisStrategy(
     start_multiples=(0.3, 1.0, 3.0), metric=ForceError(), localize=force_residual_by_regime,
     where_source="held-out",
     thresholds=Thresholds(bic_min=10.0, held_out_gain_min=None, shrink_min=0.05, signature_weight=0.0,
-                          gain_in_score=False),
-    figure=_gap_figure)
+                          gain_in_score=False))
+
+
+def _data_files(study) -> list[tuple[str, Any]]:
+    from .. import io
+
+    return [(f"{f.name} ({role}, measured)", f) for role, f in io.emps_files(study, must_exist=False).items()]
+
+
+def _published_comparison(fit: FitResult, estimation: Measurement, validation: Measurement | None) -> dict[str, Any]:
+    return emps_comparison(fit, estimation, validation).to_json()
+
+
+#: What the command line and the report need to know of the rig (:class:`ema_uq.rigs.Rig`).
+RIG = Rig(concept="emps", title="EMPS", data_files=_data_files, record_constants=emps.constants_for,
+          published_comparison=_published_comparison, gap_figure_data=gap_figure_data)
