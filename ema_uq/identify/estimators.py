@@ -222,14 +222,8 @@ def perturbed_start(parameters, fraction: float, seed: int, around: np.ndarray |
     return np.clip(start, parameters.lower, parameters.upper)
 
 
-def maximum_likelihood(
-    problem: FitProblem,
-    *,
-    method: str = "gn",
-    start: np.ndarray | None = None,
-    settings: Settings = Settings(),
-    seed: int | None = None,
-) -> FitResult:
+def maximum_likelihood(problem: FitProblem, *, method: str = "gn", start: np.ndarray | None = None,
+                       settings: Settings = Settings(), seed: int | None = None) -> FitResult:
     """Maximum-likelihood estimate of every free parameter of ``problem``.
 
     ``start`` is a full parameter vector (default: the set's nominal values) and must lie
