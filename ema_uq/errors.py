@@ -17,13 +17,9 @@ class EmaUqError(ValueError):
     says what is wrong and, where it can, how to mend it."""
 
 
-class InputFileError(EmaUqError):
-    """A file that cannot be opened, read or written as asked: missing, a directory, or
-    without permission (the operating system's error, turned into a user error where the
-    package touches the file system)."""
-
-
-#: operating-system errors that name a path the user gave, not a fault of the package
+#: operating-system errors about a path the user gave, not a fault of the package. The readers
+#: and writers of :mod:`ema_uq.io` turn them into ``DataFileError`` with the fix; the command
+#: line reports any that escape elsewhere (a figure path, a study file) as a user error too.
 FILE_ACCESS_ERRORS = (FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError, FileExistsError)
 
 

@@ -481,7 +481,7 @@ def _summary_section(study: dict, results: Path, fits: dict) -> str:
     return "<ul>" + "".join(f"<li>{i}</li>" for i in items) + "</ul>"
 
 
-def _emps_section(study: dict, results: Path) -> str:
+def _published_section(study: dict, results: Path) -> str:
     """EMPS: ML beside the published IDIM-LS values and simulation errors next to the published
     figures, as ``ema-uq identify`` wrote them into FIT.json (``published_comparison``)."""
     path = results / "fit_gn.json"
@@ -600,7 +600,7 @@ def build_report(study: dict, study_path: str | Path, results: str | Path) -> st
     sections = [("summary", "Summary of findings", _summary_section(study, results, fits)),
                 ("identification", "Maximum-likelihood identification", ident)]
     if rig is not None and rig.published_comparison is not None:
-        sections.append((rig.concept, f"{rig.title}: ML vs the published identification", _emps_section(study, results)))
+        sections.append((rig.concept, f"{rig.title}: ML vs the published identification", _published_section(study, results)))
     sections.append(("posterior", "Bayesian posterior", _posterior_section(study, results)))
     if rig is None:  # synthetic data of an EMA concept: Sobol and identifiability of its friction terms
         sections.append(("sobol", "Sobol sensitivity", _sobol_section(results)))
