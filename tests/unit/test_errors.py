@@ -25,7 +25,8 @@ def _error_classes():
             continue
         module = importlib.import_module(info.name)
         for name, obj in vars(module).items():
-            if inspect.isclass(obj) and name.endswith("Error") and obj.__module__ == info.name:
+            if (inspect.isclass(obj) and issubclass(obj, BaseException) and name.endswith("Error")
+                    and obj.__module__ == info.name):
                 found[f"{info.name}.{name}"] = obj
     return found
 
