@@ -5,9 +5,11 @@ binds one ``_run_<verb>(args) -> str`` handler; adding a verb means writing that
 listing the register function in :data:`VERBS`. Handlers only translate arguments into
 package calls and files; the numerics live in the package.
 
-Every expected failure (a ``ValueError`` from the package, such as :class:`~ema_uq.io.DataFileError`,
-``ParameterError`` or ``ExperimentError``, an ``OSError``, or a bad argument) ends the
-program with one line ``ema-uq: error: <message>`` on stderr and exit status 2. Success
+Every expected failure (an :class:`~ema_uq.errors.EmaUqError` from the package, such as
+:class:`~ema_uq.io.DataFileError`, ``ParameterError`` or ``ExperimentError``, a file that
+is missing or may not be read or written, or a bad argument) ends the program with one line
+``ema-uq: error: <message>`` on stderr and exit status 2. Any other exception is a fault of
+the package: its traceback is shown with a request to report it, exit status 3. Success
 prints a one-line summary on stdout and exits 0.
 """
 from __future__ import annotations
@@ -15,9 +17,11 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+import traceback
 from typing import Callable, Sequence
 
 from . import __version__
+from .errors import FILE_ACCESS_ERRORS, EmaUqError
 
 PROG = "ema-uq"
 #: answers of ``identify --unidentifiable`` (ema_uq.identify.UNIDENTIFIABLE_MODES; not imported
@@ -25,9 +29,12 @@ PROG = "ema-uq"
 UNIDENTIFIABLE_MODES = ("fix", "error")
 EXIT_OK = 0
 EXIT_ERROR = 2
+EXIT_BUG = 3
+BUG_REPORT = (f"{PROG}: this is a fault of {PROG} {__version__}, not of your input; please report it "
+              "with the command line and the traceback above")
 
 
-class CLIError(ValueError):
+class CLIError(EmaUqError):
     """A command-line value that the package cannot use."""
 
 
@@ -111,43 +118,24 @@ def _model_vectors(model, assignments: Sequence[str]):
 # --------------------------------------------------------------------------------------
 # unmodelled effects: the one place where --effect meets the simulator
 # --------------------------------------------------------------------------------------
-def parse_effect(spec: str) -> tuple[str, dict[str, float]]:
-    """``NAME[:param=value,...]`` -> (name, {param: value}); e.g. ``backlash:delta=0.002``."""
-    name, _, rest = spec.partition(":")
-    name = name.strip()
-    if not name:
-        raise CLIError(f"cannot read --effect {spec!r}: write NAME[:param=value,...], e.g. backlash:delta=0.002")
-    settings: dict[str, float] = {}
-    for item in filter(None, (s.strip() for s in rest.split(","))):
-        key, sep, value = item.partition("=")
-        try:
-            if not sep or not key.strip():
-                raise ValueError
-            settings[key.strip()] = float(value)
-        except ValueError:
-            raise CLIError(f"cannot read --effect {spec!r} at {item!r}: write NAME[:param=value,...] "
-                           "with numeric values, e.g. backlash:delta=0.002") from None
-    return name, settings
-
-
 def _resolve_effects(model, specs: Sequence[str]):
     """Turn ``--effect`` items into (augmented model, {effect: {parameter: value}}).
 
-    Names come from the concept's catalogue (models/effects.py); parameters may be given by
-    short (``delta``) or full (``backlash_delta``) name, unnamed ones keep the effect's
-    nominal value. Without ``--effect`` the nominal model comes back unchanged.
+    Each item is read by :func:`ema_uq.models.effects.parse_effect` against the concept's
+    catalogue (names, short or full parameter names, finite numbers); unnamed parameters keep
+    the effect's nominal value. Without ``--effect`` the nominal model comes back unchanged.
     """
-    requested = [parse_effect(spec) for spec in specs]
-    if not requested:
+    from .models.effects import EffectError, parse_effect
+
+    if not specs:
         return model, {}
-    catalogue = model.effect_catalogue
     names, values = [], {}
-    for name, settings in requested:
-        if name not in catalogue:
-            raise CLIError(f"unknown effect {name!r} for concept {model.name}; the catalogue has: "
-                           f"{', '.join(catalogue) or 'none'}")
-        for key, value in settings.items():
-            values[catalogue[name].full_name(key)] = value
+    for spec in specs:
+        try:
+            name, settings = parse_effect(spec, model.effect_catalogue)
+        except EffectError as exc:
+            raise CLIError(f"--effect of concept {model.name}: {exc}") from None
+        values.update(settings)
         names.append(name)
     augmented = model.with_effects(names, values)
     return augmented, {n: {p.name: p.nominal for p in augmented.parameters if p.name.startswith(n + "_")}
@@ -281,6 +269,7 @@ def _run_identify(args: argparse.Namespace) -> str:
     from .identify.validation import validate
     from .models import get_model
     from .provenance import provenance
+    from .rigs import rig_of
 
     model = get_model(args.concept)
     theta, constants = _model_vectors(model, args.set)
@@ -299,10 +288,9 @@ def _run_identify(args: argparse.Namespace) -> str:
     out = fit.to_json()
     out["validation"] = [validate(fit.estimate, m, channels=problem.channels, constants=constants).to_json()
                          for m in validation_data]
-    if model.name == "emps":  # the report's table beside the published identification
-        from .emps_benchmark import emps_comparison
-
-        out["published_comparison"] = emps_comparison(fit, measurements[0], next(iter(validation_data), None)).to_json()
+    rig = rig_of(model.name)
+    if rig is not None and rig.published_comparison is not None:  # the report's table beside the published values
+        out["published_comparison"] = rig.published_comparison(fit, measurements[0], next(iter(validation_data), None))
     io.write_json(args.out, out)
     _write_fit_outputs(args.out, model, fit.estimate, problem.channels, constants,
                        [("estimation", m) for m in measurements] + [("validation", m) for m in validation_data])
@@ -320,15 +308,16 @@ def _write_fit_outputs(fit_json: str, model, theta, channels, constants, records
     """Measured and predicted outputs of every (role, measurement) record beside FIT.json, so the
     report draws the fit without simulating (:mod:`ema_uq.report.outputs`)."""
     from .report.outputs import fit_outputs_path, write_fit_outputs
+    from .rigs import rig_of
     from .simulate import simulate_batch
 
+    rig = rig_of(model.name)
+    own = rig.record_constants if rig is not None else None  # records that carry their own (EMPS: gains, start)
     rows = []
     for role, m in records:
         names = [c for c in m.channels if c in channels]
-        if model.name == "emps":  # EMPS records carry their own gains and start
-            from .models.emps import constants_for
-
-            constants = constants_for(m)
+        if own is not None:
+            constants = own(m)
         predicted = simulate_batch(model, theta, m.time, m.experiment.input_matrix(model), constants=constants)
         rows.append({"role": role, "experiment": m.experiment.name, "channels": names,
                      "units": [model.unit_of(c) for c in names], "time": m.time,
@@ -714,8 +703,14 @@ def _run_gap(args: argparse.Namespace) -> str:
                                    settings={k: v for k, v in vars(args).items() if k != "handler"})
     io.write_json(args.out, result.to_json())
     tail = ""
-    if args.figure:
-        strategy.figure(result, validation_data or measurements).savefig(args.figure, dpi=110)
+    if args.figure:  # the rig's own figure where it has one (its study computes the arrays), else the ledger
+        from .report.gap_figures import gap_figure
+        from .rigs import rig_of
+
+        rig = rig_of(model.name)
+        data = (rig.gap_figure_data(result, validation_data or measurements)
+                if rig is not None and rig.gap_figure_data is not None else None)
+        gap_figure(model.name, result, data).savefig(args.figure, dpi=110)
         tail = f", ledger {args.figure}"
     what = result.headline()
     shrink = "" if result.gap["shrink"] is None else (f" (shrink {result.gap['shrink']:.2f} +/- "
@@ -798,10 +793,12 @@ def _run_fault_diagnosis(args: argparse.Namespace) -> str:
     from . import io
     from .cranfield import CHANNELS, run_study
     from .provenance import provenance
+    from .rigs import rig_of
     from .study import load_study
 
     study = load_study(args.study)
-    if study["concept"] != "cranfield":
+    rig = rig_of(study["concept"])
+    if rig is None or not rig.fault_diagnosis:
         raise CLIError(f"{args.study} is a study of concept {study['concept']}; fault-diagnosis needs a "
                        "study of concept cranfield")
     channels = tuple(study["data"].get("channels") or CHANNELS)
@@ -945,17 +942,21 @@ def _apply_study(args: argparse.Namespace, given: set[str]) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run one verb; returns the exit status (0 success, 2 bad input)."""
+    """Run one verb; returns the exit status (0 success, 2 bad input, 3 a fault of the package)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
         _apply_study(args, _given_options(argv))
         summary = args.handler(args)
-    except (ValueError, OSError) as exc:
+    except (EmaUqError, *FILE_ACCESS_ERRORS) as exc:
         if args.traceback:
             raise
         _print_error(exc)
         return EXIT_ERROR
+    except Exception:  # noqa: BLE001 - a fault of the package: shown whole, never as a user error
+        traceback.print_exc()
+        print(BUG_REPORT, file=sys.stderr)
+        return EXIT_BUG
     if summary:
         print(summary)
     return EXIT_OK

@@ -8,11 +8,12 @@ import numpy as np
 
 from .models import INPUTS, REQUIRED_INPUTS, Model, concepts, get_model
 from .models.components import DEG
+from .errors import EmaUqError
 
 SAMPLE_TIME = 0.01  # s, output sample time of the reference experiments
 
 
-class ExperimentError(ValueError):
+class ExperimentError(EmaUqError):
     """An experiment or measurement that is malformed (shapes, time grid, channels)."""
 
 

@@ -12,8 +12,10 @@ from typing import Iterable, Iterator, Mapping, Sequence
 
 import numpy as np
 
+from .errors import EmaUqError
 
-class ParameterError(ValueError):
+
+class ParameterError(EmaUqError):
     """An unknown parameter name, an impossible bound or a value outside its bounds."""
 
 

@@ -25,9 +25,10 @@ from numba import njit, prange
 from .models import KERNEL_IDS, Model, get_model
 from .models import htls, lths
 from .models.effect_kernels import evaluate_htls_effects, evaluate_lths_effects
+from .errors import EmaUqError
 
 
-class SimulationError(ValueError):
+class SimulationError(EmaUqError):
     """Inputs or parameter arrays of the wrong shape, an unknown kernel id, or a non-finite trajectory."""
 
 

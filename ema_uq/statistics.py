@@ -36,12 +36,28 @@ def covariance(residuals: np.ndarray) -> np.ndarray:
     return np.einsum("...ki,...kj->...ij", residuals, residuals) / n
 
 
-def log_det(r: np.ndarray) -> float:
-    """log det R of one (m, m) covariance; +inf when R is not positive definite or not finite."""
-    sign, logdet = np.linalg.slogdet(r)
-    if sign <= 0 or not np.isfinite(logdet):
-        return np.inf
-    return float(logdet)
+def log_det_r(r: np.ndarray) -> float | np.ndarray:
+    """log det R of one (m, m) residual covariance (a float) or of a batch (..., m, m) (an
+    array); +inf where R is singular, has det R < 0 or is not finite.
+
+    The one place where log det R is taken: the objective V of identification, the posterior
+    (log L = -(N/2) log det R), the cost QoI of the sensitivity analysis and the gap
+    diagnosis all read it from here, so all of them treat a degenerate R alike.
+
+    Why +inf for a singular R, although det R -> 0 is log det R -> -inf: a residual
+    covariance with a null direction says that some combination of channels is reproduced
+    exactly — a constant or duplicated channel, a simulation that diverged to NaN, or fewer
+    samples than channels — never that the parameters are good. Read as -inf it would be the
+    best point of every fit and the mode of every posterior; read as NaN it compares false
+    with everything and silently stalls a line search. +inf is the worst cost: an optimiser
+    steps back from it, the posterior gives the point zero likelihood (log L = -inf), and a
+    Sobol analysis stops with an error naming the non-finite runs.
+    """
+    r = np.asarray(r, dtype=float)
+    with np.errstate(invalid="ignore"):  # NaN in R: slogdet warns, the point is rejected below
+        sign, logdet = np.linalg.slogdet(r)
+    value = np.where((sign > 0) & np.isfinite(logdet), logdet, np.inf)
+    return float(value) if value.ndim == 0 else value
 
 
 def rig_penalty(values: np.ndarray, rig_values: np.ndarray, rig_std: np.ndarray) -> float:

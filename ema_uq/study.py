@@ -9,8 +9,10 @@ from typing import Any
 
 import yaml
 
+from .errors import EmaUqError
 
-class StudyError(ValueError):
+
+class StudyError(EmaUqError):
     """A study file that does not validate; the message names the offending key."""
 
 

@@ -17,6 +17,7 @@ from typing import Sequence
 
 import numpy as np
 
+from .. import statistics
 from ..identify.problem import FitProblem
 from ..identify.result import FitResult
 from .errors import BayesError
@@ -58,11 +59,7 @@ class LogPosterior:
         """(n,) log L of residuals (n, N, n_channels); -inf for a singular R or NaN residuals."""
         n_obs = residuals.shape[1]
         if self.noise_sigma is None:
-            r = np.einsum("ski,skj->sij", residuals, residuals) / n_obs
-            with np.errstate(invalid="ignore"):          # a diverged simulation: NaN -> -inf below
-                sign, logdet = np.linalg.slogdet(r)
-            ll = -0.5 * n_obs * logdet
-            ll = np.where(sign > 0, ll, -np.inf)
+            ll = -0.5 * n_obs * statistics.log_det_r(statistics.covariance(residuals))  # singular R: -inf
         else:
             s = self.noise_sigma
             ll = (-0.5 * np.sum((residuals / s) ** 2, axis=(1, 2))

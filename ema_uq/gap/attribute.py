@@ -4,7 +4,7 @@ One procedure for every concept; what differs between concepts (fitted channels 
 constants, fit settings, start grid, gap metric, localisation, thresholds, a reference fit
 held for fault diagnosis) comes from its :class:`~ema_uq.gap.strategy.DiagnosisStrategy`.
 The figures below are those of the default strategy (the synthetic actuator concepts); EMPS
-(:data:`ema_uq.emps_benchmark.EMPS_STRATEGY`) refits every parameter from a three-point start
+(:data:`ema_uq.rigs.emps.EMPS_STRATEGY`) refits every parameter from a three-point start
 grid, measures the gap as the benchmark's validation force error, ranks by ΔBIC alone and runs
 two forward-selection rounds.
 
@@ -131,6 +131,7 @@ from ..simulate import SimulationError, simulate_batch
 from .localize import ResidualRecord, complete_runs, noise_std
 from .result import CandidateScore, GapResult
 from .strategy import DiagnosisSettings, DiagnosisStrategy, Thresholds, strategy_for
+from ..errors import EmaUqError
 from .predictable import state_predictable
 from .structure import cell_energies, cell_masks, structure_left, where_left
 from .verdict import (effective_sample_fraction, family_probabilities, passes as _passes,
@@ -161,7 +162,7 @@ __all__ = ["CandidateScore", "DiagnosisSettings", "DiagnosisStrategy", "GapError
            "split_holdout"]
 
 
-class GapError(ValueError):
+class GapError(EmaUqError):
     """Data the gap diagnosis cannot use (concept mismatch, no common channel, no catalogue)."""
 
 
@@ -352,7 +353,7 @@ class _Diagnosis:
                                                 d.held_spread))
         e = np.concatenate(segments)
         out.update(nrmse=float(np.mean(np.sqrt(np.mean(e ** 2, axis=0)) / d.held_spread)),
-                   log_det_r=statistics.log_det(e.T @ e / e.shape[0]), n=int(e.shape[0]))
+                   log_det_r=statistics.log_det_r(e.T @ e / e.shape[0]), n=int(e.shape[0]))
         return out
 
     def without_estimation_error(self, model, fit: FitResult, records: Sequence[ResidualRecord]) -> list[ResidualRecord]:
@@ -742,7 +743,7 @@ def _held_base_fit(run: _Diagnosis, theta: np.ndarray) -> FitResult:
     problem = FitProblem(model=run.root, **run.problem_args)
     residual = problem.residuals(theta[None])[0]
     r = statistics.covariance(residual)
-    logdet = statistics.log_det(r)
+    logdet = statistics.log_det_r(r)
     p = run.root.parameters
     return FitResult(run.root.name, "held", tuple(p.names), tuple(q.unit for q in p.parameters),
                      np.zeros(len(p), dtype=bool), theta.copy(), theta.copy(), np.zeros(len(p)), np.zeros((0, 0)),

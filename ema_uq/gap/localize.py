@@ -61,6 +61,7 @@ import numpy as np
 from scipy import stats
 
 from ..statistics import LJUNG_BOX_LAGS, ljung_box, max_cross_correlation, speed_regimes
+from ..errors import EmaUqError
 
 
 LAG_WEIGHTS = (0.2,) * 5
@@ -90,7 +91,7 @@ REGIMES = ("reversal", "low_speed", "high_acceleration", "high_load", "direction
            "periodic", "delay")
 
 
-class LocalizationError(ValueError):
+class LocalizationError(EmaUqError):
     """Residual records that cannot be localised (shapes, no valid sample)."""
 
 

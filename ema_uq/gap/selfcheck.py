@@ -59,6 +59,7 @@ from ..models import get_model
 from .attribute import diagnose
 from .strategy import DiagnosisSettings
 from .variants import CONCEPTS, VARIANTS, draw_variant_parameters, make_records
+from ..errors import EmaUqError
 
 SENSOR_SETS = ("full", "realistic")
 BASE_PERTURBATION = 0.10
@@ -75,7 +76,7 @@ KINDS = ("effect", "none", "out_of_catalogue")
 QUICK_CASES = (("realistic", "load_friction_linear"), ("realistic", None), ("realistic", "current_sensor_error"))
 
 
-class SelfCheckError(ValueError):
+class SelfCheckError(EmaUqError):
     """A self-check request that cannot be built (unknown concept, sensor set or size)."""
 
 

@@ -9,7 +9,7 @@ itself — hold-out split, nominal fit, candidate refits, scores, verdict — is
 
 ``strategy_for(concept)`` picks a concept's strategy: the model's ``gap_strategy`` attribute
 when it has one (a strategy or a callable returning one), else one registered by
-:func:`register_strategy` (EMPS: :data:`ema_uq.emps_benchmark.EMPS_STRATEGY`), else
+:func:`register_strategy` (EMPS: :data:`ema_uq.rigs.emps.EMPS_STRATEGY`), else
 :data:`DEFAULT_STRATEGY` (the synthetic actuator concepts).
 """
 from __future__ import annotations
@@ -116,13 +116,6 @@ def localize_residual(records, channels, model, theta, measurements, spread, con
     return localize(records, channels, model, theta, constants=constants, spread=spread)
 
 
-def ledger_figure(result, held_out: Sequence[Measurement]):
-    """The default gap figure: the ledger of :func:`ema_uq.report.gap_figures.gap_ledger`."""
-    from ..report.gap_figures import gap_ledger
-
-    return gap_ledger(result)
-
-
 @dataclass(frozen=True)
 class DiagnosisStrategy:
     """What the gap diagnosis does differently for one concept.
@@ -145,7 +138,6 @@ class DiagnosisStrategy:
     hold_base : fault diagnosis: base parameters held (at ``reference_fit``, else nominal);
         the nominal model is evaluated, not fitted, and every candidate refit frees only its
         effect's parameters.
-    figure : ``(GapResult, held-out measurements) -> matplotlib Figure`` of ``ema-uq gap --figure``.
     replicate_prediction : for records that repeat one experiment (the same cycle, run after
         run), ``(estimation measurements, their nominal residuals, estimation channels,
         held-out measurements, held-out channels) -> [(n_i, m)] | None``: the held-out residual
@@ -177,7 +169,6 @@ class DiagnosisStrategy:
     thresholds: Thresholds = Thresholds()
     reference_fit: Mapping[str, float] | None = None
     hold_base: bool = False
-    figure: Callable[..., Any] = ledger_figure
     replicate_prediction: Callable[..., list[np.ndarray] | None] | None = None
     structure: StructureSettings = StructureSettings()
     healthy_records: tuple[Measurement, ...] = ()
@@ -200,7 +191,7 @@ class DiagnosisStrategy:
 DEFAULT_STRATEGY = DiagnosisStrategy()
 
 #: concept -> strategy, or "module:attribute" imported on first use
-_REGISTRY: dict[str, DiagnosisStrategy | str] = {"emps": "ema_uq.emps_benchmark:EMPS_STRATEGY",
+_REGISTRY: dict[str, DiagnosisStrategy | str] = {"emps": "ema_uq.rigs.emps:EMPS_STRATEGY",
                                                  "cranfield": "ema_uq.cranfield:CRANFIELD_STRATEGY"}
 
 

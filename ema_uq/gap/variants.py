@@ -82,6 +82,7 @@ from numba import njit
 
 from ..experiments import Experiment, Measurement, add_noise, deploy_retract, validation
 from ..models import get_model
+from ..errors import EmaUqError
 
 TWO_PI = 2.0 * math.pi
 CONCEPTS = ("htls", "lths")
@@ -99,7 +100,7 @@ CONTACT_RAMP = 0.1          # fraction of the output play over which the load is
 DELAY_CLEARANCE = 0.1       # drawn delays stay this fraction of a sample away from a multiple
 
 
-class VariantError(ValueError):
+class VariantError(EmaUqError):
     """An unknown variant or concept, or a variant parameter that is missing, unknown or out of bounds."""
 
 

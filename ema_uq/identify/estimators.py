@@ -17,8 +17,8 @@ from .result import FitResult
 
 FD_RELATIVE_STEP = 1e-5
 SINGULAR_RCOND = 1e-12
-#: answers to a singular information matrix at the start (see :func:`estimate`)
-UNIDENTIFIABLE_MODES = ("error", "fix")
+#: Gauss-Newton, Levenberg-Marquardt
+METHODS = ("gn", "lm")
 
 
 @dataclass(frozen=True)
@@ -38,7 +38,7 @@ class Settings:
 
 class SingularInformationError(IdentificationError):
     """The data cannot determine every free parameter at the start (singular information
-    matrix); ``estimate(..., unidentifiable="fix")`` holds the undetermined ones instead.
+    matrix); ``identify.estimate(..., unidentifiable="fix")`` holds the undetermined ones instead.
     ``n_simulations``: simulations spent before the test failed; ``direction``: the free
     parameters of the (near-)null direction with their weights in it (largest first)."""
 
@@ -222,35 +222,19 @@ def perturbed_start(parameters, fraction: float, seed: int, around: np.ndarray |
     return np.clip(start, parameters.lower, parameters.upper)
 
 
-def estimate(
-    problem: FitProblem,
-    *,
-    method: str = "gn",
-    start: np.ndarray | None = None,
-    settings: Settings = Settings(),
-    seed: int | None = None,
-    unidentifiable: str = "error",
-) -> FitResult:
-    """Maximum-likelihood estimate of the free parameters of ``problem``.
+def maximum_likelihood(problem: FitProblem, *, method: str = "gn", start: np.ndarray | None = None,
+                       settings: Settings = Settings(), seed: int | None = None) -> FitResult:
+    """Maximum-likelihood estimate of every free parameter of ``problem``.
 
     ``start`` is a full parameter vector (default: the set's nominal values) and must lie
     within bounds. Returns a :class:`FitResult` with Cramér-Rao standard deviations
-    computed from the information matrix at the estimate.
-
-    ``unidentifiable``: what to do when the data cannot determine every free parameter at
-    the start (singular information matrix): ``"error"`` raises :class:`SingularInformationError`
-    naming the direction; ``"fix"`` holds the undetermined parameters at their start values,
-    estimates the rest and reports the identifiable combinations (:mod:`.reduction`).
+    computed from the information matrix at the estimate. When the data cannot determine
+    every free parameter at the start (singular information matrix) it raises
+    :class:`SingularInformationError` naming the direction; :func:`ema_uq.identify.estimate`
+    chooses between that and holding the undetermined parameters (:mod:`.reduction`).
     """
-    if method not in ("gn", "lm"):
+    if method not in METHODS:
         raise IdentificationError(f"unknown method {method!r}; choose gn (Gauss-Newton) or lm (Levenberg-Marquardt)")
-    if unidentifiable not in UNIDENTIFIABLE_MODES:
-        raise IdentificationError(f"unknown unidentifiable mode {unidentifiable!r}; choose "
-                                  f"{' or '.join(UNIDENTIFIABLE_MODES)}")
-    if unidentifiable == "fix":
-        from .reduction import estimate_holding_unidentifiable
-
-        return estimate_holding_unidentifiable(problem, method=method, start=start, settings=settings, seed=seed)
     params = problem.parameters
     start = params.nominal if start is None else np.asarray(start, dtype=float)
     params.check_within_bounds(start, what="start value")

@@ -22,10 +22,11 @@ from ..models import Model, get_model
 from ..params import ParameterSet
 from ..simulate import simulate_batch
 from .. import statistics
-from ..statistics import covariance, log_det, rig_terms
+from ..statistics import covariance, log_det_r, rig_terms
+from ..errors import EmaUqError
 
 
-class IdentificationError(ValueError):
+class IdentificationError(EmaUqError):
     """Bad estimation input (wrong concept, no usable channel, start outside bounds) or
     a problem the data cannot answer (singular information matrix)."""
 
@@ -175,5 +176,5 @@ class FitProblem:
 
     def objective(self, residuals: np.ndarray, free_values: np.ndarray) -> tuple[float, float]:
         """(V, log det R) for one residual array (N, n_channels) at free parameter values."""
-        logdet = log_det(covariance(residuals))
+        logdet = log_det_r(covariance(residuals))
         return statistics.objective(self.n_samples, logdet, free_values, self.parameters, self.free_index), logdet

@@ -6,9 +6,9 @@ matrix of the full parameter set is singular. ``estimate(..., unidentifiable="fi
 then:
 
 1. computes the information matrix at the start (central differences, relative
-   coordinates, rank tolerance :data:`ema_uq.identifiability.RANK_RTOL`);
+   coordinates, rank tolerance :data:`ema_uq.identify.information.RANK_RTOL`);
 2. keeps free a maximal well-determined subset, chosen greedily with the most informative
-   parameter first (:func:`ema_uq.identifiability.identifiable_subset`; parameters at a
+   parameter first (:func:`ema_uq.identify.information.identifiable_subset`; parameters at a
    bound last, as they cannot compensate in both directions): a candidate joins when at
    least :data:`HOLD_SCHUR_RTOL` of its information is its own, i.e. its Cramér-Rao σ
    among the chosen ones stays within 100 x its stand-alone σ. Every other free parameter is
@@ -18,7 +18,7 @@ then:
 3. estimates the reduced problem (a remaining singularity still raises);
 4. reports the identifiable combination of each lumped group with its Cramér-Rao σ from the
    information matrix of the original free set at the estimate
-   (:func:`ema_uq.identifiability.combinations`).
+   (:func:`ema_uq.identify.information.combinations`).
 
 Along an exact null direction the likelihood depends on a group only through its
 combination, so estimating the combination in its own coordinate would give the same value
@@ -32,8 +32,8 @@ from typing import Any
 
 import numpy as np
 
-from .. import identifiability as ident
-from .estimators import Settings, SingularInformationError, estimate
+from . import information as fim
+from .estimators import Settings, SingularInformationError, maximum_likelihood
 from .problem import FitProblem
 from .result import FitResult
 
@@ -47,17 +47,17 @@ HOLD_RULE = ("keep free a maximal well-determined subset (greedy, most informati
 def held_parameters(problem: FitProblem, start: np.ndarray) -> tuple[dict[str, dict[str, Any]], int]:
     """{name: {"value", "reason"}} of the free parameters to hold at ``start`` (a full vector),
     and the number of simulations spent on the information matrix."""
-    info, n_sims = ident.information(problem, start)
+    info, n_sims = fim.information(problem, start)
     free = list(problem.parameters.free_names)
-    keep = ident.identifiable_subset(info, rtol=HOLD_SCHUR_RTOL,
-                                     avoid=ident._near_bounds(problem.model, start, free))
+    keep = fim.identifiable_subset(info, rtol=HOLD_SCHUR_RTOL,
+                                     avoid=fim.near_bounds(problem.model, start, free))
     held = {name: {"value": float(start[problem.parameters.index(name)]),
                    "reason": _hold_reason(info, name, keep, problem.channels)}
             for name in free if name not in keep}
     return held, n_sims
 
 
-def _hold_reason(info: ident.Information, name: str, keep: list[str], channels) -> str:
+def _hold_reason(info: fim.Information, name: str, keep: list[str], channels) -> str:
     """Why ``name`` cannot be estimated beside ``keep``: no effect on the channels, or the
     direction that moves it by +1 (relative change) and compensates with the free ones at the
     least cost in information (exact null direction, or near-null), with the fraction of its
@@ -79,12 +79,12 @@ def identifiable_combinations(problem: FitProblem, theta: np.ndarray) -> tuple[l
     """The identifiable combination of every lumped group of ``problem``'s free parameters at
     the full vector ``theta`` (expression, coefficients, value, Cramér-Rao std), and the
     number of simulations spent."""
-    info, n_sims = ident.information(problem, theta)
+    info, n_sims = fim.information(problem, theta)
     model = problem.model
     values = {n: float(theta[model.parameters.index(n)]) for n in info.names}
-    combos = ident.combinations(info, values, model, problem.constants)
+    combos = fim.combinations(info, values, model, problem.constants)
     for c in combos:
-        c["ci95"] = [c["value"] - ident.CRB_Z * c["std"], c["value"] + ident.CRB_Z * c["std"]]
+        c["ci95"] = [c["value"] - fim.CRB_Z * c["std"], c["value"] + fim.CRB_Z * c["std"]]
     return combos, n_sims
 
 
@@ -96,8 +96,8 @@ def estimate_holding_unidentifiable(problem: FitProblem, *, method: str = "gn", 
     t0 = time.perf_counter()
     start = problem.parameters.nominal if start is None else np.asarray(start, dtype=float)
     try:
-        fit = estimate(problem, method=method, start=start, settings=settings, seed=seed)
-        fit.unidentifiable = "fix"
+        fit = maximum_likelihood(problem, method=method, start=start, settings=settings, seed=seed)
+        fit.unidentifiable, fit.hold_rule = "fix", HOLD_RULE
         return fit
     except SingularInformationError as exc:
         error, spent = exc, exc.n_simulations
@@ -110,7 +110,7 @@ def estimate_holding_unidentifiable(problem: FitProblem, *, method: str = "gn", 
     while True:  # every pass holds one more parameter or raises
         reduced = replace(problem, parameters=problem.parameters.fixing(list(held)))
         try:
-            fit = estimate(reduced, method=method, start=start, settings=settings, seed=seed)
+            fit = maximum_likelihood(reduced, method=method, start=start, settings=settings, seed=seed)
             break
         except SingularInformationError as exc:
             spent += exc.n_simulations
@@ -121,7 +121,7 @@ def estimate_holding_unidentifiable(problem: FitProblem, *, method: str = "gn", 
     combos, n_combos = identifiable_combinations(problem, fit.estimate)
     for name in held:
         fit.std[fit.names.index(name)] = np.nan
-    fit.unidentifiable, fit.fixed, fit.combinations = "fix", held, combos
+    fit.unidentifiable, fit.hold_rule, fit.fixed, fit.combinations = "fix", HOLD_RULE, held, combos
     fit.n_simulations += spent + n_detect + n_combos
     fit.wall_time_s = time.perf_counter() - t0
     return fit

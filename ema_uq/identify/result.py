@@ -22,8 +22,9 @@ class FitResult:
 
     ``unidentifiable`` is the answer chosen to a singular information matrix at the start
     (``"error"`` or ``"fix"``, :mod:`ema_uq.identify.reduction`); ``fixed`` names the
-    parameters it held, {name: {"value", "reason"}}, and ``combinations`` the identifiable
-    combination of every lumped group (expression, coefficients, value, std, ci95).
+    parameters it held, {name: {"value", "reason"}}, ``combinations`` the identifiable
+    combination of every lumped group (expression, coefficients, value, std, ci95), and
+    ``hold_rule`` the rule that chose the held ones (None with ``"error"``).
     """
 
     concept: str
@@ -53,6 +54,7 @@ class FitResult:
     unidentifiable: str = "error"
     fixed: dict[str, dict[str, Any]] = field(default_factory=dict)
     combinations: list[dict[str, Any]] = field(default_factory=list)
+    hold_rule: str | None = None
 
     @property
     def free_names(self) -> tuple[str, ...]:
@@ -97,12 +99,17 @@ class FitResult:
             + (f" ({len(self.fixed)} held: {', '.join(self.fixed)})" if self.fixed else ""),
             "[[Parameters]] (std = Cramér-Rao bound)",
         ]
+        roles = self.roles()
         for i, name in enumerate(self.names):
-            tag = " (held: unidentifiable)" if name in self.fixed else ("" if self.free[i] else " (fixed)")
+            role = roles[name]
+            tag = {"held": " (held at its start: not estimated)", "fixed": " (fixed)",
+                   "kept": f" (carries a lumped group: the group value less the held members; "
+                           f"conditional σ {self.std[i]:.3g} given them)"}.get(role, "")
             if name in self.at_bounds:
                 tag += " (at bound)"
             rel = abs(self.std[i] / self.estimate[i]) * 100 if self.estimate[i] else np.nan
-            bound = f"+/- {self.std[i]:<10.3g} ({rel:5.2f}%)" if name not in self.fixed else f"{'(no bound)':<23}"
+            bound = {"held": f"{'(no bound)':<23}",
+                     "kept": f"{'(bound: its group)':<23}"}.get(role, f"+/- {self.std[i]:<10.3g} ({rel:5.2f}%)")
             lines.append(f"    {name:<8} = {self.estimate[i]:>12.6g} {bound} {self.units[i]}{tag}  "
                          f"(init = {self.start[i]:.6g})")
         lines += self._reduction_lines()
@@ -117,20 +124,42 @@ class FitResult:
     def _reduction_lines(self) -> list[str]:
         if not self.fixed and not self.combinations:
             return []
-        from .reduction import HOLD_RULE
-
-        lines = [f"[[Held parameters]] (rule: {HOLD_RULE})"]
+        lines = [f"[[Held parameters]] (rule: {self.hold_rule})"]
         lines += [f"    {n:<8} = {row['value']:>12.6g}  {row['reason']}" for n, row in self.fixed.items()]
-        lines.append("[[Identifiable combinations]] (std = Cramér-Rao bound)")
-        for c in self.combinations:
+        lines.append("[[Identifiable combinations]] (std = Cramér-Rao bound; what the data determine of a lumped group)")
+        for c in self._combinations_with_members():
             lo, hi = c["ci95"]
             lines.append(f"    {c['expression']} = {c['value']:.6g} +/- {c['std']:.3g} "
                          f"({100 * c['relative_std']:.2f}%; 95 % [{lo:.6g}, {hi:.6g}])")
+            if c["held"]:
+                lines.append(f"        carried by {', '.join(c['kept']) or '-'}; held: {', '.join(c['held'])}")
         return lines
+
+    def roles(self) -> dict[str, str]:
+        """What each parameter's value is: ``"estimated"`` (free, with its Cramér-Rao bound),
+        ``"fixed"`` (given), ``"held"`` (free, but held at its start because the data cannot
+        determine it: no bound) or ``"kept"`` (the free member of a lumped group with held
+        members: its value is the group's identifiable combination less the held members at
+        their start values, and its std is a bound only given those values; the bound that
+        means something is the combination's)."""
+        kept = {n for c in self._combinations_with_members() for n in c["kept"] if c["held"]}
+        return {n: "held" if n in self.fixed else "kept" if n in kept else "estimated" if f else "fixed"
+                for n, f in zip(self.names, self.free)}
+
+    def _combinations_with_members(self) -> list[dict[str, Any]]:
+        """The combinations, each with ``kept`` (its free members) and ``held`` (its held ones)."""
+        free = set(self.free_names)
+        out = []
+        for c in self.combinations:
+            members = list(c.get("parameters") or c.get("coefficients") or ())
+            out.append({**c, "kept": [n for n in members if n in free and n not in self.fixed],
+                        "held": [n for n in members if n in self.fixed]})
+        return out
 
     def to_json(self) -> dict[str, Any]:
         corr = self.correlation
         free_names = self.free_names
+        roles = self.roles()
         return {
             "concept": self.concept,
             "method": self.method,
@@ -147,7 +176,8 @@ class FitResult:
             "channels": list(self.channels),
             "parameters": {
                 n: {"estimate": float(self.estimate[i]), "std": float(self.std[i]), "unit": self.units[i],
-                    "start": float(self.start[i]), "free": bool(self.free[i]), "at_bound": n in self.at_bounds}
+                    "start": float(self.start[i]), "free": bool(self.free[i]), "at_bound": n in self.at_bounds,
+                    "role": roles[n], "std_conditional": roles[n] == "kept"}
                 for i, n in enumerate(self.names)
             },
             "free_parameters": list(free_names),
@@ -157,17 +187,12 @@ class FitResult:
             "at_bounds": list(self.at_bounds),
             "residual_covariance": self.residual_covariance.tolist(),
             "warnings": list(self.warnings),
-            "unidentifiable": {"mode": self.unidentifiable, "rule": self._hold_rule()},
+            "unidentifiable": {"mode": self.unidentifiable, "rule": self.hold_rule},
             "fixed": self.fixed,
-            "combinations": self.combinations,
+            "combinations": self._combinations_with_members(),
             "history": self.history,
             "provenance": self.provenance,
         }
-
-    def _hold_rule(self) -> str | None:
-        from .reduction import HOLD_RULE
-
-        return HOLD_RULE if self.unidentifiable == "fix" else None
 
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> "FitResult":
@@ -191,5 +216,6 @@ class FitResult:
             warnings=list(data.get("warnings", [])), seed=data.get("seed"),
             provenance=dict(data.get("provenance", {})),
             unidentifiable=(data.get("unidentifiable") or {}).get("mode", "error"),
+            hold_rule=(data.get("unidentifiable") or {}).get("rule"),
             fixed=dict(data.get("fixed", {})), combinations=list(data.get("combinations", [])),
         )

@@ -4,12 +4,13 @@ from __future__ import annotations
 from importlib import import_module
 
 from .base import INPUTS, KERNEL_IDS, REQUIRED_INPUTS, Model
+from ..errors import EmaUqError
 
 #: every concept of the kernel-id table, by name: the module ``models/<name>.py`` and its ``MODEL``
 _REGISTRY: dict[str, Model] = {name: import_module(f"{__name__}.{name}").MODEL for name in KERNEL_IDS}
 
 
-class UnknownConceptError(ValueError):
+class UnknownConceptError(EmaUqError):
     pass
 
 

@@ -11,6 +11,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from ..errors import ReportError  # noqa: E402
+
 ENSEMBLE_COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")
 
 
@@ -18,7 +20,7 @@ def _names(result, names: Sequence[str] | None, limit: int | None = None) -> lis
     names = list(result.names if names is None else names)
     unknown = [n for n in names if n not in result.names]
     if unknown:
-        raise ValueError(f"no posterior for {', '.join(unknown)}; sampled parameters: {', '.join(result.names)}")
+        raise ReportError(f"no posterior for {', '.join(unknown)}; sampled parameters: {', '.join(result.names)}")
     return names[:limit] if limit else names
 
 
@@ -96,7 +98,7 @@ def predictive_bands(result, channels: Sequence[str] | None = None, experiment: 
     (default: the first)."""
     idata = result.idata
     if "posterior_predictive" not in idata.groups():
-        raise ValueError("this posterior has no posterior_predictive group; sample with predictive draws")
+        raise ReportError("this posterior has no posterior_predictive group; sample with predictive draws")
     obs = idata.observed_data
     pp = idata.posterior_predictive
     channels = list(obs.data_vars if channels is None else channels)
@@ -104,7 +106,7 @@ def predictive_bands(result, channels: Sequence[str] | None = None, experiment: 
     experiment = str(experiments[0]) if experiment is None else experiment
     rows = experiments == experiment
     if not np.any(rows):
-        raise ValueError(f"no observations of experiment {experiment!r}; have {sorted(set(map(str, experiments)))}")
+        raise ReportError(f"no observations of experiment {experiment!r}; have {sorted(set(map(str, experiments)))}")
     t = obs["time"].values[rows]
     lo_q, hi_q = 0.5 - prob / 2, 0.5 + prob / 2
     fig, axes = plt.subplots(len(channels), 1, figsize=(10, 1.9 * len(channels) + 0.6), sharex=True, squeeze=False)

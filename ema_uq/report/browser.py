@@ -18,6 +18,8 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
+from ..errors import EmaUqError
+
 #: Where Chromium is looked for, in order (the environment variable wins).
 BROWSER_NAMES = ("chromium", "chromium-browser", "google-chrome", "chrome")
 
@@ -25,7 +27,7 @@ BROWSER_NAMES = ("chromium", "chromium-browser", "google-chrome", "chrome")
 _CONSOLE = re.compile(r":CONSOLE[:(]\d+")
 
 
-class BrowserError(RuntimeError):
+class BrowserError(EmaUqError, RuntimeError):
     """No usable browser, or the browser failed to render the page."""
 
 

@@ -1,6 +1,9 @@
 """EMPS gap figure (matplotlib only): the validation force residual of the nominal ML model and
-of the model with the selected effects, over time with the reference, and its RMS by regime."""
+of the model with the selected effects, over time with the reference, and its RMS by regime.
+It draws arrays (:func:`ema_uq.rigs.emps.gap_figure_data`); it simulates nothing."""
 from __future__ import annotations
+
+from typing import Any, Mapping
 
 import matplotlib
 
@@ -9,37 +12,24 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 
-def _force_residual(effects, estimate: dict, validation) -> np.ndarray:
-    from ..emps_benchmark import measured_force, simulate_record
-    from ..models import get_model
-
-    model = get_model("emps").with_effects(list(effects))
-    theta = model.parameters.vector({n: v for n, v in estimate.items() if n in model.parameters})
-    y = simulate_record(model, theta, validation)
-    return measured_force(validation) - y[:, model.outputs.index("force")]
-
-
-def gap_figure(result, validation):
+def gap_figure(data: Mapping[str, Any]):
     """Residual force [N] on the validation record before (nominal ML) and after (selected
-    effects) of a :class:`~ema_uq.gap.GapResult`, with the reference position on a grey right
-    axis; right panel: RMS by regime."""
-    from ..emps_benchmark import regime_masks
+    effects), with the reference position on a grey right axis; right panel: RMS by regime.
 
-    before = _force_residual([], result.nominal["estimate"], validation)
-    after = (_force_residual(result.after_effects, result.after.estimate, validation) if result.after is not None
-             else before)
-    t = validation.time
+    ``data``: ``time`` [s], ``before`` and ``after`` force residuals [N], ``after_label``,
+    ``reference`` (qg [m]) and ``regimes`` ({name: sample mask})."""
+    t, before, after = (np.asarray(data[k]) for k in ("time", "before", "after"))
     fig, (ax, bx) = plt.subplots(1, 2, figsize=(12, 3.6), gridspec_kw={"width_ratios": [3, 1]})
     ax.plot(t, before, lw=0.5, color="tab:red", label="nominal model")
-    ax.plot(t, after, lw=0.5, color="tab:blue", label=" + ".join(result.after_effects) or "nominal")
+    ax.plot(t, after, lw=0.5, color="tab:blue", label=data["after_label"])
     ax.set_xlabel("time [s] (validation record)")
     ax.set_ylabel("force residual [N]")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, loc="upper left")
     ref = ax.twinx()
-    ref.plot(t, validation["qg"], color="0.6", lw=0.8)
+    ref.plot(t, data["reference"], color="0.6", lw=0.8)
     ref.set_ylabel("reference qg [m]", color="0.5")
-    masks = regime_masks(validation)
+    masks = data["regimes"]
     names = list(masks)
     x = np.arange(len(names))
     rms = lambda r, m: float(np.sqrt(np.mean(r[m] ** 2))) if np.any(m) else 0.0  # noqa: E731

@@ -1,6 +1,9 @@
 """The gap ledger figure (matplotlib only here): where the nominal model's gap sits over
 time (with the flap command) and by operating regime and channel, before and after the
-winning effect of a :class:`~ema_uq.gap.GapResult`. Returns a Figure; nothing is shown or saved."""
+winning effect of a :class:`~ema_uq.gap.GapResult`, and :func:`gap_figure`, the figure of
+``ema-uq gap --figure`` chosen by concept (:data:`RIG_GAP_FIGURES`). Returns a Figure; nothing
+is shown or saved, and nothing is simulated: a rig's figure draws the arrays its study
+computed (``Rig.gap_figure_data``)."""
 from __future__ import annotations
 
 import matplotlib
@@ -9,9 +12,23 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from . import emps_figures  # noqa: E402
+
 BEFORE = dict(color="tab:red", label="nominal model")
 AFTER = dict(color="tab:blue")
 COMMAND = dict(color="0.45", lw=0.9, ls="--")
+
+
+#: concept -> its own gap figure, drawn from the arrays of ``Rig.gap_figure_data``; every
+#: other concept gets the ledger (:func:`gap_ledger`)
+RIG_GAP_FIGURES = {"emps": emps_figures.gap_figure}
+
+
+def gap_figure(concept: str, result, data=None):
+    """The gap figure of a concept: its rig's own figure of ``data`` where it has one and the
+    data were computed, else the ledger of ``result``."""
+    draw = RIG_GAP_FIGURES.get(concept)
+    return draw(data) if draw is not None and data is not None else gap_ledger(result)
 
 
 def _after_label(result) -> str:

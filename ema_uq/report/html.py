@@ -16,6 +16,7 @@ import numpy as np
 from .. import io
 from ..models import get_model
 from ..provenance import file_sha256, settings_hash
+from ..rigs import is_measured, rig_of
 from . import figures
 from .outputs import fit_outputs_path, read_fit_outputs
 
@@ -43,9 +44,6 @@ def _img(fig, alt: str) -> str:
     return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{figures.to_png_base64(fig)}">'
 
 
-SYNTHETIC_CONCEPTS = ("htls", "lths")
-
-
 def _held_parameters(fits: dict) -> list[str]:
     """Parameters a fit held because its channels cannot determine them, and the identifiable
     combinations it reports instead (FIT.json ``fixed``, ``combinations``)."""
@@ -55,7 +53,9 @@ def _held_parameters(fits: dict) -> list[str]:
             continue
         rule = (f.get("unidentifiable") or {}).get("rule") or ""
         parts.append(f"<h3>{k}: parameters held (the channels cannot determine them)</h3>"
-                     f"<p>Rule: {html.escape(rule)}. Held values carry no bound.</p>")
+                     f"<p>Rule: {html.escape(rule)}. Held values carry no bound; the member left free in a "
+                     "lumped group carries the group, so its value is the group's combination less the held "
+                     "values and its σ holds only given them: the combination's σ is the bound.</p>")
         parts.append(_table(["parameter", "held at", "reason"],
                             [[n, _fmt(r["value"], 6), html.escape(r["reason"])] for n, r in f["fixed"].items()]))
         parts.append(_table(["identifiable combination", "value", "CRB σ", "95 % interval"],
@@ -66,7 +66,7 @@ def _held_parameters(fits: dict) -> list[str]:
 
 def _identification_section(study: dict, results: Path) -> tuple[str, dict]:
     model = get_model(study["concept"])
-    synthetic = model.name in SYNTHETIC_CONCEPTS
+    synthetic = not is_measured(model.name)
     fits = {}
     for method in study["identify"]["methods"]:
         path = results / f"fit_{method}.json"
@@ -82,9 +82,12 @@ def _identification_section(study: dict, results: Path) -> tuple[str, dict]:
     for i, n in enumerate(names):
         est = [fits[k]["parameters"][n]["estimate"] for k in fits]
         std = [fits[k]["parameters"][n]["std"] for k in fits]
-        z = [((e - truth[i]) / s) if s else None for e, s in zip(est, std)]
+        # the member that carries a lumped group: its σ holds only given the held members
+        kept = [fits[k]["parameters"][n].get("role") == "kept" for k in fits]
+        z = [((e - truth[i]) / s) if s and not c else None for e, s, c in zip(est, std, kept)]
         rows.append([n, model.parameters[n].unit] + ([_fmt(truth[i])] if synthetic else [])
-                    + [_fmt(e, 6) for e in est] + [_fmt(s, 3) for s in std]
+                    + [_fmt(e, 6) for e in est]
+                    + [f"{_fmt(s, 3)} (given the held)" if c else _fmt(s, 3) for s, c in zip(std, kept)]
                     + ([_fmt(v, 2) for v in z] if synthetic else []))
     summary_rows = [[k, "yes" if f["converged"] else '<span class="flag">no</span>', f["iterations"],
                      f["n_simulations"], f"{f['wall_time_s']:.2f}", _fmt(f["log_det_R"], 8),
@@ -150,7 +153,7 @@ def _posterior_section(study: dict, results: Path) -> str:
         return '<p class="muted">Posterior not sampled.</p>'
     post = PosteriorResult.from_netcdf(path)
     model = get_model(study["concept"])
-    synthetic = model.name in SYNTHETIC_CONCEPTS  # measured data have no truth
+    synthetic = not is_measured(model.name)  # measured data have no truth
     truth = dict(zip(model.parameters.names, model.parameters.vector(study["data"].get("set", {}))))
     table = post.summary()
     hdi_lo, hdi_hi = [c for c in table.columns if c.startswith("hdi_")][:2]
@@ -342,7 +345,7 @@ def _gap_section(study: dict, results: Path) -> str:
              + (f" (confidence {html.escape(str(gap['confidence']))})" if gap.get("confidence") else "") + ". "
              + f"The gap lies in channels {html.escape(', '.join(gap['where'].get('channels', [])) or '–')} and "
                f"regimes {html.escape(', '.join(gap['where'].get('regimes', [])) or '–')}.</p>"]
-    if study["concept"] in SYNTHETIC_CONCEPTS:
+    if not is_measured(study["concept"]):
         truth = ", ".join(hidden) if hidden else "none (the rig-like records are nominal-model data)"
         parts.append(f"<p>Check of this study: the rig-like records were generated with the hidden effect(s) "
                      f"<b>{html.escape(truth)}</b>; the diagnosis did not see them.</p>")
@@ -433,11 +436,11 @@ def _estimate_findings(study: dict, results: Path, fits: dict) -> list[str]:
     (EMPS, the published IDIM-LS values)."""
     model = get_model(study["concept"])
     items = []
-    if model.name in SYNTHETIC_CONCEPTS:
+    if not is_measured(model.name):
         truth = dict(zip(model.parameters.names, model.parameters.vector(study["data"].get("set", {}))))
         for k, f in fits.items():
             z = {n: abs(p["estimate"] - truth[n]) / p["std"] for n, p in f["parameters"].items()
-                 if n in truth and p.get("std") and np.isfinite(p["std"]) and p["std"] > 0}
+                 if n in truth and p.get("std") and np.isfinite(p["std"]) and p["std"] > 0 and p.get("role") != "kept"}
             if z:
                 worst = max(z, key=z.get)
                 state = "converged" if f["converged"] else '<span class="flag">not converged</span>'
@@ -505,7 +508,7 @@ def _summary_section(study: dict, results: Path, fits: dict) -> str:
     return "<ul>" + "".join(f"<li>{i}</li>" for i in items) + "</ul>"
 
 
-def _emps_section(study: dict, results: Path) -> str:
+def _published_section(study: dict, results: Path) -> str:
     """EMPS: ML beside the published IDIM-LS values and simulation errors next to the published
     figures, as ``ema-uq identify`` wrote them into FIT.json (``published_comparison``)."""
     path = results / "fit_gn.json"
@@ -603,16 +606,9 @@ def _provenance_section(study: dict, study_path: Path, results: Path, fits: dict
     for f in sorted(results.rglob("*")):
         if f.is_file() and f.suffix in (".nc", ".csv", ".mat") and "logs" not in f.parts:
             rows.append([f"sha256 {html.escape(str(f.relative_to(results)))}", file_sha256(f)[:32] + "…"])
-    if study["concept"] == "emps":
-        try:
-            for role, f in io.emps_files(study).items():
-                rows.append([f"sha256 {html.escape(f.name)} ({role}, measured)", file_sha256(f)[:32] + "…"])
-        except io.DataFileError:
-            rows.append(["measured data", "not found"])
-    if study["concept"] == "cranfield":
-        for name in io.CRANFIELD_FILES:
-            f = io.cranfield_file(name, study, must_exist=False)
-            rows.append([f"sha256 {html.escape(f.name)} (measured)", file_sha256(f)[:32] + "…" if f.is_file() else "not found"])
+    rig = rig_of(study["concept"])
+    for label, f in rig.data_files(study) if rig is not None else ():
+        rows.append([f"sha256 {html.escape(label)}", file_sha256(f)[:32] + "…" if f.is_file() else "not found"])
     for k, fit in fits.items():
         rows.append([f"{k} fit created", html.escape(str(fit.get("provenance", {}).get("created", "")))])
     return _table(["item", "value"], [[html.escape(str(a)), str(b)] for a, b in rows])
@@ -621,7 +617,8 @@ def _provenance_section(study: dict, study_path: Path, results: Path, fits: dict
 def build_report(study: dict, study_path: str | Path, results: str | Path) -> str:
     """HTML text of the report for ``study`` from the result files in ``results``."""
     results, study_path = Path(results), Path(study_path)
-    if study["concept"] == "cranfield":  # measured fault records: one stage, healthy fit and diagnoses
+    rig = rig_of(study["concept"])
+    if rig is not None and rig.fault_diagnosis:  # measured fault records: one stage, healthy fit and diagnoses
         return _render(study, [("summary", "Summary of findings", _summary_section(study, results, {})),
                                ("faults", "Fault diagnosis of measured records", _faults_section(results)),
                                ("cost", "Time and memory per stage", _stage_cost_section(results)),
@@ -629,10 +626,10 @@ def build_report(study: dict, study_path: str | Path, results: str | Path) -> st
     ident, fits = _identification_section(study, results)
     sections = [("summary", "Summary of findings", _summary_section(study, results, fits)),
                 ("identification", "Maximum-likelihood identification", ident)]
-    if study["concept"] == "emps":
-        sections.append(("emps", "EMPS: ML vs the published identification", _emps_section(study, results)))
+    if rig is not None and rig.published_comparison is not None:
+        sections.append((rig.concept, f"{rig.title}: ML vs the published identification", _published_section(study, results)))
     sections.append(("posterior", "Bayesian posterior", _posterior_section(study, results)))
-    if study["concept"] in SYNTHETIC_CONCEPTS:
+    if rig is None:  # synthetic data of an EMA concept: Sobol and identifiability of its friction terms
         sections.append(("sobol", "Sobol sensitivity", _sobol_section(results)))
         sections.append(("identifiability", "Identifiability of the friction and damping parameters",
                          _identifiability_section(study, results)))
@@ -642,7 +639,7 @@ def build_report(study: dict, study_path: str | Path, results: str | Path) -> st
         sections.append(("selfcheck", "Blind self-check of the gap diagnosis", _selfcheck_section(results)))
     stages = {"posterior": "Bayesian posterior", "sobol": "Sobol sensitivity",
               "ident": "Identifiability", "gap": "Sim-to-real gap"}
-    if study["concept"] not in SYNTHETIC_CONCEPTS:  # Sobol and identifiability concern the EMA friction terms
+    if rig is not None:  # Sobol and identifiability concern the EMA friction terms
         stages = {k: v for k, v in stages.items() if k in ("posterior", "gap")}
     pending = [title for key, title in stages.items() if not any(results.glob(f"{key}*"))]
     if pending:

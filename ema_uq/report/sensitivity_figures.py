@@ -12,6 +12,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from ..errors import ReportError  # noqa: E402
+
 DEFAULT_QOI = ("cost", "rms_Omega", "rms_I_A", "tracking_error", "peak_torque", "energy")
 OUTPUT_LABELS = {"Omega": "Ω [rad/s]", "y1": "y1 [m]", "I_A": "I_A [A]"}
 VERDICT_COLORS = {"identifiable": "#4c9a4c", "practically_non_identifiable": "#e0a030",
@@ -40,7 +42,7 @@ def sobol_bars(result, qoi: Sequence[str] | str | None = None, ncols: int = 2):
         qoi = [qoi]
     unknown = [q for q in qoi if q not in res.qoi]
     if unknown:
-        raise ValueError(f"no Sobol indices for {', '.join(unknown)}; QoI: {', '.join(res.qoi)}")
+        raise ReportError(f"no Sobol indices for {', '.join(unknown)}; QoI: {', '.join(res.qoi)}")
     ncols = min(ncols, len(qoi))
     nrows = int(np.ceil(len(qoi) / ncols))
     d = len(res.names)
@@ -118,7 +120,7 @@ def profile_likelihoods(result, names: Sequence[str] | None = None, ncols: int =
     profiled = [n for n in data["parameters"] if any("profile" in s["parameters"].get(n, {}) for s in sets.values())]
     names = [n for n in (names or profiled) if n in profiled]
     if not names:
-        raise ValueError("no profile likelihood in this result; run identifiability with profiles")
+        raise ReportError("no profile likelihood in this result; run identifiability with profiles")
     ncols = min(ncols, len(names))
     nrows = int(np.ceil(len(names) / ncols))
     fig, axes = plt.subplots(nrows, ncols, figsize=(3.2 * ncols, 2.4 * nrows + 0.6), squeeze=False)

@@ -82,10 +82,11 @@ def test_simulate_set_channels_and_no_noise(tmp_path):
     (SIMULATE + ("--set", "J"), ("cannot read 'J'", "NAME=VALUE")),
     (SIMULATE + ("--noise", "-0.1"), ("argument --noise",)),
     (SIMULATE + ("--channels", "Omega", "Volts"), ("unknown output channel 'Volts'",)),
-    (SIMULATE + ("--effect", "friction_x:delta=0.001"), ("unknown effect 'friction_x'", "backlash")),
-    (SIMULATE + ("--effect", "backlash:delta"), ("cannot read --effect",)),
+    (SIMULATE + ("--effect", "friction_x:delta=0.001"), ("--effect of concept htls: unknown effect 'friction_x'", "backlash")),
+    (SIMULATE + ("--effect", "backlash:delta"), ("cannot read effect 'backlash:delta'",)),
+    (SIMULATE + ("--effect", "backlash:delta=nan"), ("backlash_delta = nan is not finite",)),
 ], ids=["unknown-concept", "unknown-set-name", "set-out-of-bounds", "malformed-set", "negative-noise",
-        "unknown-channel", "unknown-effect", "malformed-effect"])
+        "unknown-channel", "unknown-effect", "malformed-effect", "infinite-effect"])
 def test_simulate_bad_input(tmp_path, args, fragments):
     out = tmp_path / "x.nc"
     assert_one_line_error(run_cli(*args, "--out", out), *fragments)

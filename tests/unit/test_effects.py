@@ -527,7 +527,7 @@ def test_simulate_with_effects_end_to_end(tmp_path):
 @pytest.mark.parametrize("effect, fragments", [
     ("backlash:gap=0.1", ("effect backlash has no parameter 'gap'", "delta")),
     ("backlash:delta=-1", ("backlash_delta = -1 lies outside its bounds",)),
-    ("gears", ("unknown effect 'gears' for concept lths", "backlash")),
+    ("gears", ("--effect of concept lths: unknown effect 'gears'", "backlash")),
 ])
 def test_simulate_bad_effect_is_a_one_line_error(tmp_path, capsys, effect, fragments):
     from ema_uq.cli import main

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from ema_uq import Experiment, Measurement, get_model, io, simulate_batch
-from ema_uq.emps_benchmark import (EMPS_STRATEGY, emps_comparison, fit_emps, published_alignment_force_error,
+from ema_uq.rigs.emps import (EMPS_STRATEGY, emps_comparison, fit_emps, published_alignment_force_error,
                                    simulation_errors)
 from ema_uq.gap import diagnose
 from ema_uq.identify import FitProblem, estimate
@@ -339,7 +339,7 @@ def test_corrected_model_matches_published_asymmetric_variant(estimation, nomina
 
 
 def emps_report_published():
-    from ema_uq.emps_benchmark import PUBLISHED_ASYMMETRIC
+    from ema_uq.rigs.emps import PUBLISHED_ASYMMETRIC
 
     return PUBLISHED_ASYMMETRIC
 
@@ -385,7 +385,7 @@ def test_full_gap_diagnosis(estimation, validation):
 def test_posterior_converges(estimation, nominal_fit):
     """emcee on the nominal model: R-hat < 1.01 and bulk/tail ESS >= 400 on M, Fv, Fc, offset."""
     from ema_uq import bayes
-    from ema_uq.emps_benchmark import emps_problem
+    from ema_uq.rigs.emps import emps_problem
 
     posterior = bayes.sample(emps_problem([estimation]), nominal_fit, seed=1)
     table = posterior.summary()

@@ -180,3 +180,50 @@ def test_a_direction_only_the_optimiser_sees_is_held_member_by_member(monkeypatc
     name = next(iter(fit.fixed))
     assert "near-null direction" in fit.fixed[name]["reason"] and np.isnan(fit.std[fit.names.index(name)])
     assert set(fit.free_names) == {"J", "B_TS1", "B_TS2", "k_n"} - {name}
+
+
+def _lumped_fit() -> FitResult:
+    """A hand-made fit of three viscous losses lumped in one group (b1 free, b2 and b3 held)
+    beside an ordinary parameter J."""
+    names = ("J", "b1", "b2", "b3")
+    return FitResult(
+        concept="htls", method="gn", names=names, units=("kg m2", "N m s", "N m s", "N m s"),
+        free=np.array([True, True, False, False]), start=np.array([1.0, 0.5, 0.65, 0.4]),
+        estimate=np.array([1.1, 0.8, 0.65, 0.4]), std=np.array([0.01, 0.02, np.nan, np.nan]),
+        covariance=np.diag([1e-4, 4e-4]), channels=("Omega",), residual_covariance=np.eye(1), log_det_r=0.0,
+        objective=0.0, n_samples=10, converged=True, message="", iterations=3, n_simulations=9, wall_time_s=0.1,
+        unidentifiable="fix", hold_rule="hold the rest",
+        fixed={"b2": {"value": 0.65, "reason": "null direction"}, "b3": {"value": 0.4, "reason": "null direction"}},
+        combinations=[{"parameters": ["b1", "b2", "b3"], "expression": "b1 + b2 + b3",
+                       "coefficients": {"b1": 1.0, "b2": 1.0, "b3": 1.0}, "value": 1.85, "std": 0.02,
+                       "relative_std": 0.02 / 1.85, "ci95": [1.81, 1.89]}])
+
+
+def test_a_lumped_group_is_reported_as_what_it_is(tmp_path):
+    fit = _lumped_fit()
+    assert fit.roles() == {"J": "estimated", "b1": "kept", "b2": "held", "b3": "held"}
+    lines = {line.split()[0]: line for line in fit.summary().splitlines() if " = " in line and "(init = " in line}
+    assert "+/- 0.01" in lines["J"]
+    # the kept member: no standalone bound, its σ labelled as holding only given the held ones
+    assert "+/-" not in lines["b1"] and "(bound: its group)" in lines["b1"] and "conditional σ 0.02" in lines["b1"]
+    assert "+/-" not in lines["b2"] and "(no bound)" in lines["b2"] and "held at its start" in lines["b2"]
+    text = fit.summary()
+    assert "b1 + b2 + b3 = 1.85 +/- 0.02" in text and "carried by b1; held: b2, b3" in text
+    # FIT.json: the old keys unchanged, the roles added
+    data = json.loads(io.write_json(tmp_path / "fit.json", fit.to_json()).read_text())
+    assert data["parameters"]["b1"]["std"] == 0.02 and data["parameters"]["b1"]["role"] == "kept"
+    assert data["parameters"]["b1"]["std_conditional"] is True and data["parameters"]["J"]["std_conditional"] is False
+    assert [data["parameters"][n]["role"] for n in ("J", "b2")] == ["estimated", "held"]
+    combo = data["combinations"][0]
+    assert combo["kept"] == ["b1"] and combo["held"] == ["b2", "b3"] and combo["std"] == 0.02
+    back = FitResult.from_json(data)
+    assert back.roles() == fit.roles() and back.hold_rule == "hold the rest"
+
+
+def test_rig_fit_roles(fits):
+    fit = fits[1]
+    roles = fit.roles()
+    assert sorted(n for n, r in roles.items() if r == "kept") == sorted(
+        n for n in fit.free_names if n in FRICTION)
+    assert {n for n, r in roles.items() if r == "held"} == set(fit.fixed)
+    assert all(roles[n] == "estimated" for n in ("J", "k_n", "p_ACE", "p_PCE"))

@@ -20,7 +20,7 @@ def test_objective_at_a_known_covariance():
     e = np.array([[a, 0.0], [-a, 0.0], [0.0, b], [0.0, -b]])
     r = statistics.covariance(e)
     np.testing.assert_allclose(r, np.diag([a * a / 2, b * b / 2]), rtol=1e-15)
-    logdet = statistics.log_det(r)
+    logdet = statistics.log_det_r(r)
     assert logdet == pytest.approx(np.log(a * a * b * b / 4), rel=1e-14)
     assert statistics.objective(4, logdet) == pytest.approx(2.0 * np.log(a * a * b * b / 4), rel=1e-14)
     # one rig pseudo-measurement (nominal 2, σ 0.5) at θ = 3: + ½ (1 / 0.5)² = 2; the free
@@ -32,7 +32,38 @@ def test_objective_at_a_known_covariance():
     assert statistics.objective(4, logdet, theta[[1]], params, [1]) == pytest.approx(2.0 * np.log(a * a * b * b / 4))
     # a batch of residual sets, and a singular R
     assert statistics.covariance(np.stack([e, 2 * e])).shape == (2, 2, 2)
-    assert statistics.log_det(np.zeros((2, 2))) == np.inf
+    assert statistics.log_det_r(np.zeros((2, 2))) == np.inf
+
+
+def test_log_det_r_is_inf_on_every_degenerate_r():
+    rng = np.random.default_rng(3)
+    e = rng.standard_normal((50, 2))
+    good = statistics.covariance(e)
+    duplicated = statistics.covariance(np.column_stack([e[:, 0], e[:, 0]]))   # exactly singular
+    cases = [np.zeros((2, 2)), duplicated, np.full((2, 2), np.nan), np.array([[1.0, 2.0], [2.0, 1.0]]),
+             np.diag([np.inf, 1.0])]
+    for r in cases:
+        assert statistics.log_det_r(r) == np.inf
+    assert statistics.log_det_r(good) == pytest.approx(np.log(np.linalg.det(good)), rel=1e-12)
+    # a batch: one value per R, the degenerate ones +inf
+    batch = statistics.log_det_r(np.stack([good, *cases]))
+    assert batch.shape == (len(cases) + 1,)
+    assert batch[0] == pytest.approx(np.log(np.linalg.det(good)), rel=1e-12) and np.all(batch[1:] == np.inf)
+    assert statistics.log_det is statistics.log_det_r
+
+
+def test_posterior_and_sensitivity_read_the_same_log_det_r():
+    from types import SimpleNamespace
+
+    from ema_uq.bayes.posterior import LogPosterior
+
+    rng = np.random.default_rng(4)
+    e = rng.standard_normal((40, 2))
+    residuals = np.stack([e, np.column_stack([e[:, 0], e[:, 0]]), np.full_like(e, np.nan)])
+    ll = LogPosterior.log_likelihood_of_residuals(SimpleNamespace(noise_sigma=None), residuals)
+    expected = -0.5 * 40 * statistics.log_det_r(statistics.covariance(residuals))
+    np.testing.assert_allclose(ll[0], expected[0], rtol=1e-14)
+    assert ll[1] == -np.inf and ll[2] == -np.inf
 
 
 # --------------------------------------------------------------------------------------
