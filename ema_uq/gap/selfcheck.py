@@ -49,7 +49,8 @@ raised counts here too) is a *false alarm*.
 
 Scores (:class:`SelfCheckResult`): top-1 accuracy over in-catalogue cases (right only if the
 verdict is ``effect`` and the family named is the variant's); false-alarm rate over none
-cases (plain and stressed also apart), the soft-alarm rate and the rate of any verdict but
+cases (plain and stressed also apart), the soft-alarm rate, the rate of ``unexplained`` with
+high confidence (a *hard alarm*: no effect named, but wrong) and the rate of any verdict but
 ``none``; flagged rates (``unexplained`` or ``ambiguous``) of the out-of-catalogue and of the
 left-out cases; the rate of a wrong family named with high confidence over every case that
 carries an effect (in-catalogue, left-out, out-of-catalogue); median and quartiles of the
@@ -321,18 +322,25 @@ class SelfCheckResult:
         return self._rate("none", lambda o: o.verdict == "unexplained" and o.confidence == "low")
 
     @property
+    def hard_alarms(self) -> dict[str, Any]:
+        """No-effect cases diagnosed ``unexplained`` with high confidence: no effect named, but
+        not right either (the residual judged structured beyond what any candidate closes)."""
+        return self._rate("none", lambda o: o.verdict == "unexplained" and o.confidence != "low")
+
+    @property
     def any_alarm(self) -> dict[str, Any]:
         """No-effect cases with any verdict but ``none`` (the strict rate of earlier self-checks)."""
         return self._rate("none", lambda o: o.verdict != "none")
 
     @property
     def false_alarms_by_stress(self) -> dict[str, dict[str, Any]]:
-        """False, soft and any alarms of the plain and of the stressed none cases apart."""
+        """False, soft, hard and any alarms of the plain and of the stressed none cases apart."""
         out = {}
         for key, stressed in (("plain", False), ("stressed", True)):
             cases = [o for o in self.of("none") if o.case.stressed is stressed]
             out[key] = {"false": self._rate_of(cases, lambda o: o.verdict in NAMED),
                         "soft": self._rate_of(cases, lambda o: o.verdict == "unexplained" and o.confidence == "low"),
+                        "hard": self._rate_of(cases, lambda o: o.verdict == "unexplained" and o.confidence != "low"),
                         "any": self._rate_of(cases, lambda o: o.verdict != "none")}
         return out
 
@@ -440,11 +448,12 @@ class SelfCheckResult:
         for key, (prop, target, side) in TARGETS.items():
             lines.append(line(TARGET_NAMES[key], getattr(self, prop), f"  target {side} {target:.2f}: {status[key]}"))
         lines += [line("  soft alarms (unexplained, low)", self.soft_alarms),
+                  line("  hard alarms (unexplained, high)", self.hard_alarms),
                   line("  any verdict but none", self.any_alarm)]
         for key, parts in self.false_alarms_by_stress.items():
             if parts["false"]["n"]:
                 lines.append(line(f"  false alarms, {key} none cases", parts["false"],
-                                  f"; soft {parts['soft']['count']}/{parts['soft']['n']}"))
+                                  f"; soft {parts['soft']['count']}, hard {parts['hard']['count']}"))
         s = self.shrink
         lines.append(f"    {'honest shrink (right family)':<30} median {s['median']:.3f}, quartiles {s['q25']:.3f}-"
                      f"{s['q75']:.3f}, range {s['min']:.3f}-{s['max']:.3f}, median se {s['median_se']:.3f} "
@@ -492,6 +501,7 @@ class SelfCheckResult:
             "n_cases": len(self.outcomes), "seed": self.seed, "quick": self.quick, "settings": self.settings,
             "generator": "ema_uq.gap.variants (independent simulator and effect variants)",
             "top1": self.top1, "false_alarms": self.false_alarms, "soft_alarms": self.soft_alarms,
+            "hard_alarms": self.hard_alarms,
             "any_alarm": self.any_alarm, "false_alarms_by_stress": self.false_alarms_by_stress,
             "out_of_catalogue_flagged": self.out_of_catalogue_flagged, "left_out_flagged": self.left_out_flagged,
             "wrong_family_confident": self.wrong_family_confident, "shrink": self.shrink,
@@ -549,20 +559,18 @@ def _case(seed: int, concept: str, sensors: str, variant: str | None, none_index
           left_out: bool = False) -> Case:
     names = list(VARIANTS)
     family = None if variant is None else VARIANTS[variant].family
+    stressed, candidates = variant is None and none_index % 2 == 1, None
     if left_out:
         if family is None:
             raise SelfCheckError(f"variant {variant!r} has no catalogue family to leave out")
         slot, kind, label = LEFT_OUT_SLOT + names.index(variant), "left_out", f"{variant}-left-out"
         candidates = catalogue_without(concept, family)
+    elif variant is None:
+        slot, kind, label = NONE_SLOT + none_index, "none", f"none#{none_index}" + ("-stressed" if stressed else "")
     else:
-        slot = NONE_SLOT + none_index if variant is None else names.index(variant)
-        kind = "none" if variant is None else ("effect" if family is not None else "out_of_catalogue")
-        stressed = variant is None and none_index % 2 == 1
-        label = (f"none#{none_index}" + ("-stressed" if stressed else "")) if variant is None else variant
-        candidates = None
+        slot, kind, label = names.index(variant), "effect" if family is not None else "out_of_catalogue", variant
     case = Case(f"{concept}/{sensors}/{label}", concept, sensors, kind, variant, family,
-                case_seed(seed, concept, sensors, slot), stressed=kind == "none" and none_index % 2 == 1,
-                candidates=candidates)
+                case_seed(seed, concept, sensors, slot), stressed=stressed, candidates=candidates)
     if case.seed in CALIBRATION_SEEDS:
         raise SelfCheckError(f"case {case.case_id} drew seed {case.seed}, one the thresholds were calibrated on; "
                              "choose another self-check seed")

@@ -416,7 +416,8 @@ def _selfcheck_section(results: Path) -> str:
             + "<p>A target is met or not met only where the one-sided 95 % Clopper-Pearson bound shows it; "
             "“n too small” otherwise. False alarms: a named effect on a no-effect case (half of them with "
             "model-form stress); a low-confidence “unexplained” is a soft alarm "
-            f"({_fmt((sc.get('soft_alarms') or {}).get('value'), 3)}).</p>"
+            f"({_fmt((sc.get('soft_alarms') or {}).get('value'), 3)}), a high-confidence one a hard alarm "
+            f"({_fmt((sc.get('hard_alarms') or {}).get('value'), 3)}).</p>"
             + "<h3>Confusion matrix</h3>" + _img(gap_figures.selfcheck_confusion(sc), "self-check confusion matrix")
             + _left_out_table(sc.get("confusion_left_out") or {})
             + "<h3>Cases</h3>"

@@ -85,6 +85,7 @@ def test_left_out_scores_confusion_and_confident_wrong_family():
     assert result.left_out_flagged["count"] == 2 and result.left_out_flagged["n"] == 5
     assert result.wrong_family_confident["count"] == 2 and result.wrong_family_confident["n"] == 8
     assert result.false_alarms["count"] == 1 and result.soft_alarms["count"] == 1 and result.any_alarm["count"] == 3
+    assert result.hard_alarms["count"] == 1
     by_stress = result.false_alarms_by_stress
     assert by_stress["stressed"]["false"]["count"] == 1 and by_stress["plain"]["false"]["n"] == 1
     assert [o.correct for o in result.of("none")] == [True, True, False, False]
