@@ -441,7 +441,7 @@ class SelfCheckResult:
 
         def line(name, rate, tail=""):
             low, high = rate["interval95"]
-            return (f"    {name:<30} {rate['value']:6.3f} ({rate['count']}/{rate['n']}, 95 % CI "
+            return (f"    {name:<36} {rate['value']:6.3f} ({rate['count']}/{rate['n']}, 95 % CI "
                     f"{low:.2f}-{high:.2f}){tail}")
 
         lines = []
@@ -452,10 +452,10 @@ class SelfCheckResult:
                   line("  any verdict but none", self.any_alarm)]
         for key, parts in self.false_alarms_by_stress.items():
             if parts["false"]["n"]:
-                lines.append(line(f"  false alarms, {key} none cases", parts["false"],
+                lines.append(line(f"  false alarms, {key} none", parts["false"],
                                   f"; soft {parts['soft']['count']}, hard {parts['hard']['count']}"))
         s = self.shrink
-        lines.append(f"    {'honest shrink (right family)':<30} median {s['median']:.3f}, quartiles {s['q25']:.3f}-"
+        lines.append(f"    {'honest shrink (right family)':<36} median {s['median']:.3f}, quartiles {s['q25']:.3f}-"
                      f"{s['q75']:.3f}, range {s['min']:.3f}-{s['max']:.3f}, median se {s['median_se']:.3f} "
                      f"(n = {s['n']})")
         return lines
