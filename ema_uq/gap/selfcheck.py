@@ -474,12 +474,12 @@ class SelfCheckResult:
         return lines
 
     def case_lines(self) -> list[str]:
-        lines = [f"    {'case':<44} {'family':<24} {'verdict':<11} {'family found':<24} {'conf':<6} "
+        lines = [f"    {'case':<52} {'family':<24} {'verdict':<11} {'family found':<24} {'conf':<6} "
                  f"{'shrink +- se':>15} {'time':>6}  ok"]
         for o in self.outcomes:
             shrink = "" if not np.isfinite(o.shrink) else f"{o.shrink:.3f} +- {o.shrink_se:.3f}"
             found = o.family if o.verdict == "effect" else ("|".join(o.ambiguous_families) or "-")
-            lines.append(f"    {o.case.case_id:<44} {o.case.truth_row:<24} {o.verdict:<11} "
+            lines.append(f"    {o.case.case_id:<52} {o.case.truth_row:<24} {o.verdict:<11} "
                          f"{found:<24} {o.confidence:<6} {shrink:>15} "
                          f"{o.wall_time_s:>5.0f}s  {'yes' if o.correct else 'NO'}")
         return lines
