@@ -401,9 +401,10 @@ def _selfcheck_section(results: Path) -> str:
     for c in sc["cases"]:
         shrink = "" if c.get("shrink") is None else f"{_fmt(c['shrink'], 3)} ± {_fmt(c.get('shrink_se'), 2)}"
         ok = "yes" if c["correct"] else '<span class="flag">no</span>'
-        cases.append([html.escape(str(c["variant"] or "none")), html.escape(str(c["truth_family"] or c["expected"])),
+        cases.append([html.escape(str(c["case_id"]).split("/")[-1]), html.escape(str(c["truth_family"] or c["expected"])),
                       html.escape(c["sensors"]), html.escape(c["verdict"]),
-                      html.escape(str(c["family"])) if c["verdict"] == "effect" else "–",
+                      html.escape(str(c["family"]) if c["verdict"] == "effect"
+                                  else " | ".join(c.get("ambiguous_families") or []) or "–"),
                       html.escape(c["confidence"]), shrink, f"{c['wall_time_s']:.0f}", ok])
     settings = sc.get("settings", {})
     return ("<p>Rig-like records of an independent simulator with effect variants written apart from the "
@@ -421,7 +422,7 @@ def _selfcheck_section(results: Path) -> str:
             + "<h3>Confusion matrix</h3>" + _img(gap_figures.selfcheck_confusion(sc), "self-check confusion matrix")
             + _left_out_table(sc.get("confusion_left_out") or {})
             + "<h3>Cases</h3>"
-            + _table(["variant", "truth family", "sensors", "verdict", "family found", "confidence",
+            + _table(["case", "truth family", "sensors", "verdict", "family found", "confidence",
                       "shrink ± se", "time [s]", "right"], cases))
 
 
