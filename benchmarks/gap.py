@@ -175,6 +175,8 @@ PROTOCOL_HEADER = """\
 # Written by `python benchmarks/gap.py --protocol benchmarks/gap_protocol.yaml --freeze`; do not edit by
 # hand. The evaluation block runs only while the sources hash to sources.sha256; a re-freeze after a
 # change writes a new hash and a NEW evaluation block and records the old one under spent.
+# Run a block:   python benchmarks/gap.py --protocol benchmarks/gap_protocol.yaml --block development [--jobs N]
+# Scattered:     the same with --chunk I/N for I = 0..N-1 (one job each), then once without --chunk to gather.
 """
 
 
