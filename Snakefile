@@ -254,24 +254,51 @@ rule gap:
         "--validate {input.validation} --figure {output.ledger} --out {output.result} > {log} 2>&1"
 
 
-rule gap_selfcheck:
+SELFCHECK_CHUNKS = 8  # self-check scatter: every case is seeded on its own, so parts do not depend on it
+
+
+def selfcheck_chunks(w):
+    """Parts of a study's self-check: one job each (the quick subset is one part)."""
+    return 1 if study(w)["gap"]["selfcheck"] == "quick" else SELFCHECK_CHUNKS
+
+
+rule gap_selfcheck_case:
+    # one part of the self-check: every N-th case from case I (counted from 0); a failed part reruns alone
     output:
-        "results/{study}/selfcheck.json",
+        "results/{study}/selfcheck/part_{chunk}.json",
     params:
         study_file=study_file,
         settings=settings("gap-selfcheck"),
+        chunks=selfcheck_chunks,
+    log:
+        "results/{study}/logs/gap_selfcheck_{chunk}.log",
+    benchmark:
+        "results/{study}/benchmarks/gap_selfcheck_{chunk}.tsv"
+    threads: 1
+    resources:
+        mem_mb=3000,
+        runtime=240,
+    shell:
+        "ema-uq gap-selfcheck --study {params.study_file} --chunk {wildcards.chunk}/{params.chunks} "
+        "--jobs 1 --out {output} > {log} 2>&1"
+
+
+rule gap_selfcheck:
+    # gathers the parts into the result of one run (cheap: no diagnosis)
+    input:
+        lambda w: expand("results/{study}/selfcheck/part_{chunk}.json", study=w.study,
+                         chunk=range(selfcheck_chunks(w))),
+    output:
+        "results/{study}/selfcheck.json",
     log:
         "results/{study}/logs/gap_selfcheck.log",
     benchmark:
         "results/{study}/benchmarks/gap_selfcheck.tsv"
-    # cases run in parallel worker processes; each is seeded on its own, so the output does not
-    # depend on the thread count
-    threads: workflow.cores
     resources:
-        mem_mb=3000,
-        runtime=120,
+        mem_mb=1000,
+        runtime=5,
     shell:
-        "ema-uq gap-selfcheck --study {params.study_file} --jobs {threads} --out {output} > {log} 2>&1"
+        "ema-uq gap-selfcheck --gather {input} --out {output} > {log} 2>&1"
 
 
 rule fault_diagnosis:

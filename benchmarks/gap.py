@@ -4,39 +4,79 @@ confusion matrix and the per-case table.
 
 Cases per concept and sensor set (full outputs; the rig's sensors): every in-catalogue effect
 variant once with log-uniform magnitudes and uniform phases, ``--none-per-set`` no-effect
-cases and every out-of-catalogue variant once; base parameters U(+-10 %) off nominal, 2 %
-noise, each case from its own seed derived from ``--seed``. Scores: top-1 accuracy (the right
-family named), false-alarm rate, out-of-catalogue flagged (only ``unexplained`` counts) with
-95 % Clopper-Pearson intervals, and the honest shrink (signed, scored on the second validation
-record, with its standard error) where the right family was found.
+cases (every second one with model-form stress), every out-of-catalogue variant once and
+every in-catalogue variant with its family's forms left out of the catalogue; base parameters
+U(+-10 %) off nominal, 2 % noise, each case from its own seed derived from ``--seed``. Scores
+(:mod:`ema_uq.gap.selfcheck`): top-1 accuracy (the right family named), false alarms (a
+named effect on a no-effect case) and soft alarms, out-of-catalogue and left-out flagged
+(``unexplained`` or ``ambiguous``), a wrong family named with high confidence, each with its
+95 % Clopper-Pearson interval and target status, and the honest shrink (signed, scored on
+the second validation record, with its standard error) where the right family was found.
 
 Peer (``--peer``, off by default: it costs about a quarter of the main run): the former
 circular self-check, whose records came from the diagnosis's own catalogue kernels at the
 catalogue's nominal magnitudes from nominal base parameters (one case per effect plus one
 no-effect case, full outputs), scored by the same rules.
 
+Frozen protocol (``--protocol benchmarks/gap_protocol.yaml``): the file fixes the catalogue
+(per concept, family -> forms), the thresholds and strategy knobs, the self-check settings and
+targets, a SHA-256 hash of the diagnosis sources (:data:`SOURCE_FILES` and ``ema_uq/gap/*.py``)
+and two seed blocks: ``development`` (run and look at as often as wanted) and ``evaluation``
+(run once on the final method). ``--block development|evaluation`` runs every self-check
+seed of the block, one outcome JSON per case under ``--results``/<block>/<sources hash>/ (a
+rerun resumes; ``--chunk I/N`` runs one part of every seed, for a scheduler's array job),
+writes ``<block>.json`` there and prints the targets of both blocks side by side when both
+exist. The
+evaluation block refuses to run when the sources' hash differs from the frozen one: re-freeze
+with ``--freeze`` (new hash and a NEW evaluation block; the old block is recorded as spent,
+never to be reused). ``--freeze`` on a protocol whose hash still holds keeps its blocks
+(``--new-evaluation`` draws a fresh evaluation block anyway).
+
 Usage: python benchmarks/gap.py [--concept htls|lths|both] [--sensors full realistic] [--jobs N]
                                 [--quick] [--none-per-set N] [--kinds ...] [--none-from K] [--seed N]
                                 [--peer] [--out JSON]
+       python benchmarks/gap.py --protocol benchmarks/gap_protocol.yaml --block development|evaluation
+                                [--jobs N] [--chunk I/N] [--results DIR]
+       python benchmarks/gap.py --protocol benchmarks/gap_protocol.yaml --freeze [--new-evaluation]
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import datetime
+import hashlib
 import json
 import os
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
+import yaml
 
 from ema_uq.experiments import Measurement, add_noise, deploy_retract, validation
 from ema_uq.gap import diagnose
-from ema_uq.gap.selfcheck import (DEFAULT_SEED, KINDS, NONE_PER_SET, SENSOR_SETS, TARGET_FALSE_ALARM, TARGET_TOP1,
-                                  family_of, self_check)
+from ema_uq.gap import attribute
+from ema_uq.gap.selfcheck import (CALIBRATION_SEEDS, DEFAULT_SEED, KINDS, NONE_PER_SET, SENSOR_SETS, TARGET_FALSE_ALARM,
+                                  TARGET_NAMES, TARGET_TOP1, TARGETS, SelfCheckResult, catalogue_families, family_of,
+                                  self_check)
+from ema_uq.gap.strategy import DiagnosisSettings, Thresholds, strategy_for
 from ema_uq.gap.variants import record_channels, validation_scaled
 from ema_uq.models import get_model
 from ema_uq.simulate import simulate_batch
 
 PEER_NOISE = 0.02
+ROOT = Path(__file__).resolve().parents[1]
+#: sources of the diagnosis besides ema_uq/gap/*.py whose hash the protocol freezes
+SOURCE_FILES = ["ema_uq/models/effects.py", "ema_uq/models/effect_kernels.py", "ema_uq/models/htls.py",
+                "ema_uq/models/lths.py", "ema_uq/models/cranfield.py"]
+#: self-check seeds in use before the protocol (reported figures, defaults, calibration): never evaluation seeds
+USED_SEEDS = frozenset({1, 2, 3, 5, DEFAULT_SEED, *CALIBRATION_SEEDS})
+DEVELOPMENT_SEEDS = [11, 12, 13]
+EVALUATION_SEEDS = [5201, 5202, 5203]
+#: self-check settings of a protocol block: every case kind, >= 60 none cases (half stressed)
+PROTOCOL_SELFCHECK = {"concepts": ["htls", "lths"], "sensors": list(SENSOR_SETS), "kinds": list(KINDS),
+                      "none_per_set": 16}
 
 
 def circular_records(concept: str, effect: str | None, seed: int) -> list[Measurement]:
@@ -71,7 +111,223 @@ def circular_peer(concept: str, seed: int) -> dict:
             "rows": rows}
 
 
+# ----------------------------------------------------------------------------------------
+# the frozen protocol
+# ----------------------------------------------------------------------------------------
+def source_globs(root: Path = ROOT) -> list[str]:
+    """ema_uq/gap/*.py under ``root``, relative, sorted."""
+    return sorted(p.relative_to(root).as_posix() for p in (Path(root) / "ema_uq" / "gap").glob("*.py"))
+
+
+def hash_sources(root: Path = ROOT) -> tuple[str, dict[str, str]]:
+    """(combined SHA-256, {file: SHA-256}) of the diagnosis sources under ``root``; the combined
+    hash is that of the lines "<file sha256>  <path>" in path order."""
+    files = sorted(set(source_globs(root)) | set(SOURCE_FILES))
+    each = {}
+    for rel in files:
+        path = Path(root) / rel
+        if not path.is_file():
+            raise SystemExit(f"protocol source {rel} not found under {root}; the protocol lists it")
+        each[rel] = hashlib.sha256(path.read_bytes()).hexdigest()
+    combined = hashlib.sha256("".join(f"{h}  {rel}\n" for rel, h in each.items()).encode()).hexdigest()
+    return combined, each
+
+
+def _frozen_method() -> dict:
+    """Catalogue, thresholds and strategy knobs as the code sets them."""
+    def plain(obj):
+        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(obj).items()}
+
+    strategies = {}
+    for concept in PROTOCOL_SELFCHECK["concepts"]:
+        strategy = strategy_for(get_model(concept))
+        strategies[concept] = {"name": strategy.name, "thresholds": plain(strategy.thresholds),
+                               "settings": plain(strategy.settings),
+                               "start_multiples": [float(m) for m in strategy.start_multiples],
+                               "where_source": strategy.where_source,
+                               "metric": type(strategy.metric).__name__,
+                               "z_significant": getattr(strategy.metric, "z_significant", None)}
+    return {"catalogue": {c: catalogue_families(c) for c in PROTOCOL_SELFCHECK["concepts"]},
+            "thresholds": plain(Thresholds()), "settings": plain(DiagnosisSettings()),
+            "constants": {"Z_HELD_OUT": attribute.Z_HELD_OUT, "PROFILE_POINTS": attribute.PROFILE_POINTS,
+                          "SHRINK_BLOCKS": attribute.SHRINK_BLOCKS, "SHRINK_REPLICATES": attribute.SHRINK_REPLICATES},
+            "strategies": strategies}
+
+
+def load_protocol(path) -> dict:
+    with open(path, encoding="utf-8") as fh:
+        return yaml.safe_load(fh)
+
+
+def _fresh_block(size: int, taken: set[int]) -> list[int]:
+    """The next ``size`` seeds above every seed taken (spent, development, in use before)."""
+    start = max(max(taken, default=0), max(EVALUATION_SEEDS) - 1) + 1
+    out = []
+    while len(out) < size:
+        if start not in taken and start not in USED_SEEDS:
+            out.append(start)
+        start += 1
+    return out
+
+
+PROTOCOL_HEADER = """\
+# Frozen protocol of the gap diagnosis self-check (benchmarks/gap.py --protocol).
+# Written by `python benchmarks/gap.py --protocol benchmarks/gap_protocol.yaml --freeze`; do not edit by
+# hand. The evaluation block runs only while the sources hash to sources.sha256; a re-freeze after a
+# change writes a new hash and a NEW evaluation block and records the old one under spent.
+# Run a block:   python benchmarks/gap.py --protocol benchmarks/gap_protocol.yaml --block development [--jobs N]
+# Scattered:     the same with --chunk I/N for I = 0..N-1 (one job each), then once without --chunk to gather.
+"""
+
+
+def freeze(path, *, root: Path = ROOT, development: list[int] | None = None, evaluation: list[int] | None = None,
+           new_evaluation: bool = False) -> dict:
+    """Write the protocol at ``path``: the sources' hash, catalogue, thresholds and knobs, the
+    self-check settings and targets, the seed blocks (kept from an existing file unless the hash
+    changed or ``new_evaluation``: then the evaluation block is spent and a fresh one drawn)."""
+    path = Path(path)
+    old = load_protocol(path) if path.is_file() else None
+    combined, each = hash_sources(root)
+    blocks = (old or {}).get("blocks") or {}
+    dev = list(development if development is not None else (blocks.get("development") or {}).get("seeds")
+               or DEVELOPMENT_SEEDS)
+    old_eval = blocks.get("evaluation") or {}
+    spent = [list(b) for b in old_eval.get("spent") or []]
+    if evaluation is not None:
+        seeds = list(evaluation)
+    elif old_eval.get("seeds") and (new_evaluation or old["sources"]["sha256"] != combined):
+        spent.append(list(old_eval["seeds"]))
+        taken = {s for b in spent for s in b} | set(dev)
+        seeds = _fresh_block(len(old_eval["seeds"]), taken)
+    else:
+        seeds = list(old_eval.get("seeds") or EVALUATION_SEEDS)
+    clash = set(seeds) & ({s for b in spent for s in b} | set(dev) | USED_SEEDS)
+    if clash:
+        raise SystemExit(f"evaluation seeds {sorted(clash)} are spent, development or already used seeds; "
+                         "choose unused ones")
+    protocol = {
+        "frozen": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "sources": {"sha256": combined, "files": each},
+        **_frozen_method(),
+        "selfcheck": {**PROTOCOL_SELFCHECK,
+                      "targets": {k: {"rate": prop, "target": t, "side": side} for k, (prop, t, side) in TARGETS.items()},
+                      "status_rule": "met / not met only where the one-sided 95 % Clopper-Pearson bound shows it, "
+                                     "else n too small"},
+        "blocks": {"development": {"seeds": dev},
+                   "evaluation": {"seeds": seeds, "spent": spent}},
+    }
+    path.write_text(PROTOCOL_HEADER + yaml.safe_dump(protocol, sort_keys=False, width=110), encoding="utf-8")
+    return protocol
+
+
+def check_sources(protocol: dict, *, root: Path = ROOT) -> str | None:
+    """None when the sources still hash to the frozen value; else a one-line message naming the fix."""
+    combined, each = hash_sources(root)
+    if combined == protocol["sources"]["sha256"]:
+        return None
+    frozen = protocol["sources"]["files"]
+    changed = sorted(f for f in set(each) | set(frozen) if each.get(f) != frozen.get(f))
+    return (f"gap sources changed since the protocol was frozen ({', '.join(changed)}); the evaluation block "
+            f"is refused: re-freeze with `python benchmarks/gap.py --protocol <file> --freeze` (new hash and a "
+            f"new evaluation block, the old one recorded as spent)")
+
+
+def run_block(protocol: dict, block: str, out_dir: Path, jobs: int = 1, chunk: str | None = None,
+              root: Path = ROOT) -> SelfCheckResult | None:
+    """Every seed of the block, one outcome file per case under
+    ``out_dir/<block>/<hash>/seed<S>/`` (``hash``: the first 12 hex digits of the current
+    sources' SHA-256, so outcomes of other code are never mixed in; a rerun reads them back).
+    Without ``chunk``: the outcomes of all seeds in one result, written to ``<block>.json``.
+    ``chunk`` "I/N": only the I-th part of every seed's cases (a scattered job), no result."""
+    settings = protocol["selfcheck"]
+    seeds = protocol["blocks"][block]["seeds"]
+    current = hash_sources(root)[0]
+    outcomes, wall, parts, used = [], 0.0, {}, {}
+    for seed in seeds:
+        part = self_check(seed=int(seed), concepts=settings["concepts"], sensors=settings["sensors"],
+                          kinds=settings["kinds"], none_per_set=int(settings["none_per_set"]), jobs=jobs,
+                          cache=Path(out_dir) / block / current[:12] / f"seed{seed}", chunk=chunk,
+                          progress=lambda line, s=seed: print(f"seed {s} {line}", flush=True))
+        outcomes += part.outcomes
+        wall += part.wall_time_s
+        parts[str(seed)] = {"n_cases": len(part.outcomes), "status": part.status}
+        used = part.settings
+    if chunk is not None:
+        return None
+    result = SelfCheckResult(outcomes, int(seeds[0]), False, wall,
+                             {**used, "seeds": list(seeds), "block": block, "sources_sha256": current,
+                              "protocol_sha256": protocol["sources"]["sha256"]})
+    Path(out_dir).mkdir(parents=True, exist_ok=True)
+    with open(Path(out_dir) / f"{block}.json", "w", encoding="utf-8") as fh:
+        json.dump({**result.to_json(), "per_seed": parts}, fh, indent=1)
+    return result
+
+
+def side_by_side(results: dict[str, SelfCheckResult]) -> str:
+    """The targets of the blocks in columns: rate (count/n) and status."""
+    names = list(results)
+    lines = [f"    {'target':<32}" + "".join(f"{n:>34}" for n in names)]
+    for key, (prop, target, side) in TARGETS.items():
+        cells = []
+        for n in names:
+            rate, status = getattr(results[n], prop), results[n].status[key]
+            cells.append(f"{rate['value']:.3f} ({rate['count']}/{rate['n']}) {status}")
+        lines.append(f"    {TARGET_NAMES[key] + f' {side} {target}':<32}" + "".join(f"{c:>34}" for c in cells))
+    return "\n".join(lines)
+
+
+def protocol_main(path, block: str, *, root: Path = ROOT, out_dir: Path | None = None, jobs: int = 1,
+                  chunk: str | None = None) -> None:
+    protocol = load_protocol(path)
+    out_dir = Path(out_dir or ROOT / "results" / "gap_protocol")
+    problem = check_sources(protocol, root=root)
+    if problem and block == "evaluation":
+        raise SystemExit(problem)
+    if problem:
+        print(f"note: {problem.split(';')[0]}; the development block runs anyway", flush=True)
+    result = run_block(protocol, block, out_dir, jobs, chunk=chunk, root=root)
+    if result is None:
+        print(f"part {chunk} of the {block} block done; run the block without --chunk to gather it")
+        return
+    print()
+    print(result.summary())
+    results = {}
+    for name in ("development", "evaluation"):
+        if name == block:
+            results[name] = result
+        elif (out_dir / f"{name}.json").is_file():
+            with open(out_dir / f"{name}.json", encoding="utf-8") as fh:
+                results[name] = SelfCheckResult.from_json(json.load(fh))
+    print("\n[[Blocks]] (seeds " + "; ".join(f"{n}: {', '.join(map(str, protocol['blocks'][n]['seeds']))}"
+                                              for n in results) + ")")
+    print(side_by_side(results))
+
+
 def main() -> None:
+    if "--protocol" in sys.argv:
+        parser = argparse.ArgumentParser(description="the frozen self-check protocol (see the module docstring)")
+        parser.add_argument("--protocol", required=True, metavar="YAML")
+        parser.add_argument("--block", choices=("development", "evaluation"))
+        parser.add_argument("--freeze", action="store_true", help="write the hash, catalogue, thresholds and blocks")
+        parser.add_argument("--new-evaluation", action="store_true",
+                            help="with --freeze: spend the evaluation block and draw a fresh one")
+        parser.add_argument("--jobs", type=int, default=1)
+        parser.add_argument("--chunk", metavar="I/N",
+                            help="run only every N-th case from case I (counted from 0) of every seed (a scattered "
+                                 "job); the block's result comes from a run without --chunk, which reads them back")
+        parser.add_argument("--results", default=str(ROOT / "results" / "gap_protocol"), metavar="DIR",
+                            help="per-case outcomes and block results (default results/gap_protocol)")
+        args = parser.parse_args()
+        if args.freeze == bool(args.block):
+            parser.error("give either --freeze or --block")
+        if args.freeze:
+            p = freeze(args.protocol, new_evaluation=args.new_evaluation)
+            print(f"froze {args.protocol}: sources {p['sources']['sha256'][:12]}..., development seeds "
+                  f"{p['blocks']['development']['seeds']}, evaluation seeds {p['blocks']['evaluation']['seeds']}"
+                  + (f", spent {p['blocks']['evaluation']['spent']}" if p['blocks']['evaluation']['spent'] else ""))
+            return
+        protocol_main(args.protocol, args.block, out_dir=Path(args.results), jobs=args.jobs, chunk=args.chunk)
+        return
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--concept", choices=("htls", "lths", "both"), default="both")
     parser.add_argument("--sensors", nargs="+", choices=SENSOR_SETS, default=list(SENSOR_SETS))
@@ -97,7 +353,7 @@ def main() -> None:
     print(result.summary())
     print(f"\nper concept/sensor set: " + "; ".join(
         f"{k}: top-1 {v['top1_accuracy']:.2f}, false alarms {v['false_alarm_rate']:.2f}, out of catalogue "
-        f"{v['out_of_catalogue_flagged']:.2f}" for k, v in result.by_set().items()))
+        f"{v['out_of_catalogue_flagged']:.2f}, left out {v['left_out_flagged']:.2f}" for k, v in result.by_set().items()))
     print(f"{len(result.outcomes)} cases in {result.wall_time_s:.0f} s with {args.jobs} job(s) "
           f"(load average {load:.1f} on {os.cpu_count()} cores at the start)")
     peers = {}

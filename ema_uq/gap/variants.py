@@ -67,6 +67,16 @@ measured carriage position, not from the command: each carriage feels an extra
 the position loops move the carriages so smoothly (bandwidth ~1 rad/s) that even a 20 t
 equivalent flap mass at 3-10 Hz changes the records by less than 2 % noise shows.
 
+Model-form stress of no-effect records (:func:`draw_stress`, ``make_records(stress=...)``)
+---------------------------------------------------------------------------------------
+A rig with no unmodelled effect still differs from the fitted model in ways no catalogue
+effect describes, and a diagnosis should not name an effect for them: coloured sensor noise
+(AR(1), coefficient U(0.3, 0.8), same variance as the white noise), quantisation of every
+sensor (step U(0.2 %, 1 %) of the channel's RMS), design constants off their drawing (gear
+ratios, screw radius and lead angle, joint angles: each times 1 + U(-3 %, 3 %)) and command
+shaping the experiment does not record (first-order filter of phi_r, time constant
+U(10, 50) ms). The ranges are :data:`STRESS_RANGES`.
+
 Magnitudes are drawn log-uniform from "just visible at 2 % noise" to "strong", phases uniform in
 [0, 2 pi), other shape parameters uniform (:func:`draw_variant_parameters`). The records of
 :func:`make_records` carry no label; their truth is returned separately.
@@ -351,9 +361,18 @@ def _kernel_parameters(concept: str, base: Mapping[str, float]) -> np.ndarray:
     return np.array([float(base[n]) if n in model_names else 0.0 for n in PARAMETER_LAYOUT])
 
 
-def _kernel_constants(concept: str) -> np.ndarray:
+def _kernel_constants(concept: str, offsets: Mapping[str, float] | None = None) -> np.ndarray:
+    """Design constants in kernel order, each times (1 + ``offsets[name]``) (a rig built off its
+    drawing), then the values derived from them."""
     constants = get_model(concept).constants
     values = dict(zip(constants.names, constants.nominal))
+    for name, offset in (offsets or {}).items():
+        if name not in values:
+            raise VariantError(f"{concept} has no design constant {name!r}; offsets apply to "
+                               f"{', '.join(values)}")
+        if not (math.isfinite(offset) and abs(offset) < 0.5):
+            raise VariantError(f"design constant offset {name} = {offset!r} must be finite and within +-0.5")
+        values[name] = values[name] * (1.0 + float(offset))
     c = [float(values.get(n, 0.0)) for n in CONSTANT_LAYOUT]
     r, gamma = values["r"], values["gamma"]
     c += [r * math.tan(gamma), r * math.sin(gamma) * math.cos(gamma),
@@ -716,7 +735,9 @@ def _base_values(concept: str, base) -> dict[str, float]:
 
 
 def simulate_variant(concept: str, experiment: Experiment, base=None, variant: str | None = None,
-                     params: Mapping[str, float] | None = None, *, step: float | None = None) -> np.ndarray:
+                     params: Mapping[str, float] | None = None, *, step: float | None = None,
+                     constant_offsets: Mapping[str, float] | None = None,
+                     input_filter: float = 0.0) -> np.ndarray:
     """Clean outputs of the independent simulator: (n_samples, n_outputs) in
     ``get_model(concept).outputs`` order.
 
@@ -724,6 +745,9 @@ def simulate_variant(concept: str, experiment: Experiment, base=None, variant: s
     nominal); ``variant``/``params``: an effect variant of :data:`VARIANTS` and its parameters
     (None: the nominal model). ``step``: RK4 step [s] (default the concept's converged step
     divided by the variant's ``step_divisor``), rounded to divide the sample time.
+    ``constant_offsets``: relative offsets of design constants (the rig built off its drawing);
+    ``input_filter``: time constant [s] of a first-order command shaping of ``phi_r``
+    (:func:`shape_command`) that the experiment, and so the diagnosis, does not know of.
     """
     model = get_model(_check_concept(concept))
     values = _base_values(concept, base)
@@ -731,7 +755,7 @@ def simulate_variant(concept: str, experiment: Experiment, base=None, variant: s
     checked = {} if var is None else check_variant_parameters(variant, params or {})
     if var is None and params:
         raise VariantError("variant parameters given without a variant; name the variant")
-    c = _kernel_constants(concept)
+    c = _kernel_constants(concept, constant_offsets)
     th = _kernel_parameters(concept, values)
     vv = _kernel_values(concept, var, checked, c)
     dt = experiment.dt
@@ -741,11 +765,99 @@ def simulate_variant(concept: str, experiment: Experiment, base=None, variant: s
     n_sub = max(1, int(round(dt / h_wanted)))
     inputs = np.ascontiguousarray(np.column_stack(
         [experiment.inputs.get(n, np.zeros_like(experiment.time)) for n in ("phi_r", "F_ER1", "F_ER2", "brake")]))
+    if input_filter:
+        inputs[:, 0] = shape_command(inputs[:, 0], input_filter, dt)
     names = KERNEL_OUTPUTS[concept]
     out = np.empty((experiment.n_samples, len(names)))
     _run(CONCEPTS.index(concept), 0 if var is None else var.kernel_id, th, c, vv, inputs, dt / n_sub, n_sub, out)
     out = _measure(concept, var, checked, out, dt)
     return out[:, [names.index(ch) for ch in model.outputs]]
+
+
+def shape_command(values: np.ndarray, tau: float, dt: float) -> np.ndarray:
+    """First-order low-pass of time constant ``tau`` [s] on a held signal sampled every ``dt``:
+    y_k = y_(k-1) + (1 - exp(-dt / tau)) (u_k - y_(k-1)), y_0 = u_0 (the exact step response
+    of a first-order lag to a held input, one sample late)."""
+    values = np.asarray(values, dtype=float)
+    if not (math.isfinite(tau) and tau >= 0.0):
+        raise VariantError(f"command filter time constant must be finite and >= 0, got {tau!r}")
+    if tau == 0.0 or values.size == 0:
+        return values.copy()
+    from scipy.signal import lfilter
+
+    alpha = 1.0 - math.exp(-dt / tau)
+    out, _ = lfilter([alpha], [1.0, -(1.0 - alpha)], values[1:], zi=[(1.0 - alpha) * values[0]])
+    return np.concatenate([values[:1], out])
+
+
+# ------------------------------------------------------------------------------------------
+# model-form stress of no-effect records: what a rig always differs by
+# ------------------------------------------------------------------------------------------
+#: stated ranges of the stress draws (:func:`draw_stress`)
+STRESS_RANGES = {
+    "ar1": (0.3, 0.8),              # AR(1) coefficient of the sensor noise (same variance as white)
+    "quantisation": (0.002, 0.01),  # quantisation step of every sensor, fraction of its clean RMS
+    "constant_offset": 0.03,        # design constants each times 1 + U(-0.03, 0.03)
+    "input_filter": (0.01, 0.05),   # s, first-order command shaping of phi_r
+}
+#: design constants the stress moves (those a concept has)
+STRESS_CONSTANTS = ("r", "gamma", "beta1", "beta2", "i_TP1", "i_TP2", "i_MG", "i_BG1", "i_BG2")
+
+
+def draw_stress(concept: str, rng: np.random.Generator) -> dict[str, Any]:
+    """Random model-form stress of a no-effect record within :data:`STRESS_RANGES`: AR(1)
+    coefficient and quantisation step fraction uniform, one offset per design constant of
+    :data:`STRESS_CONSTANTS` the concept has (uniform in +-``constant_offset``), command filter
+    time constant uniform. Every stress at once: the rig differs from the model in all of them."""
+    names = get_model(_check_concept(concept)).constants.names
+    offset = STRESS_RANGES["constant_offset"]
+    return {"ar1": float(rng.uniform(*STRESS_RANGES["ar1"])),
+            "quantisation": float(rng.uniform(*STRESS_RANGES["quantisation"])),
+            "constants": {n: float(rng.uniform(-offset, offset)) for n in STRESS_CONSTANTS if n in names},
+            "input_filter": float(rng.uniform(*STRESS_RANGES["input_filter"]))}
+
+
+def check_stress(stress: Mapping[str, Any] | None) -> dict[str, Any]:
+    """The stress as plain values (keys ``ar1``, ``quantisation``, ``constants``, ``input_filter``,
+    each optional); an unknown key or a value out of bounds is a VariantError."""
+    if not stress:
+        return {}
+    stray = [k for k in stress if k not in ("ar1", "quantisation", "constants", "input_filter")]
+    if stray:
+        raise VariantError(f"unknown stress {stray[0]!r}; give ar1, quantisation, constants or input_filter")
+    out: dict[str, Any] = {}
+    for key, lower, upper in (("ar1", 0.0, 0.99), ("quantisation", 0.0, 0.5), ("input_filter", 0.0, 10.0)):
+        if key in stress:
+            value = float(stress[key])
+            if not (math.isfinite(value) and lower <= value <= upper):
+                raise VariantError(f"stress {key} = {value!r} lies outside [{lower}, {upper}]")
+            out[key] = value
+    if "constants" in stress:
+        out["constants"] = {str(k): float(v) for k, v in dict(stress["constants"]).items()}
+    return out
+
+
+def coloured_noise(clean: np.ndarray, fraction: float, ar1: float, rng: np.random.Generator) -> np.ndarray:
+    """``clean`` plus AR(1) Gaussian noise e_k = a e_(k-1) + sqrt(1 - a^2) w_k, stationary from
+    the first sample, of standard deviation ``fraction`` x each channel's RMS (as white noise)."""
+    from scipy.signal import lfilter
+
+    clean = np.asarray(clean, dtype=float)
+    sigma = fraction * np.sqrt(np.mean(clean ** 2, axis=0))
+    w = rng.standard_normal(clean.shape)
+    if ar1 == 0.0 or clean.shape[0] < 2:
+        return clean + w * sigma
+    e = np.empty_like(w)
+    e[0] = w[0]
+    e[1:], _ = lfilter([math.sqrt(1.0 - ar1 ** 2)], [1.0, -ar1], w[1:], axis=0, zi=ar1 * w[:1])
+    return clean + e * sigma
+
+
+def quantise(values: np.ndarray, steps: np.ndarray) -> np.ndarray:
+    """Every column rounded to a multiple of its step (a step of 0 leaves it as it is)."""
+    steps = np.asarray(steps, dtype=float)
+    safe = np.where(steps > 0, steps, 1.0)
+    return np.where(steps > 0, np.round(values / safe) * safe, values)
 
 
 def perturbed_base(concept: str, rng: np.random.Generator, fraction: float = 0.10,
@@ -789,7 +901,7 @@ def record_channels(concept: str, channels) -> tuple[str, ...]:
 
 def make_records(concept: str, variant: str | None, params: Mapping[str, float] | None, *, seed: int,
                  base_perturbation: float = 0.10, noise: float = 0.02, channels=None,
-                 rig_perturbation: float = RIG_PERTURBATION
+                 rig_perturbation: float = RIG_PERTURBATION, stress: Mapping[str, Any] | None = None
                  ) -> tuple[Measurement, Measurement, Measurement, dict[str, Any]]:
     """Rig-like records of one concept with a hidden variant: (estimation on deploy-retract,
     validation, second validation on :func:`validation_scaled`, truth).
@@ -800,6 +912,14 @@ def make_records(concept: str, variant: str | None, params: Mapping[str, float] 
     ``none``). ``channels``: None/"full", "realistic" or a list. The measurements carry no label;
     ``truth`` holds variant, family, expected verdict (the family, ``unexplained`` or ``none``),
     parameters, base parameters, seed and settings. Everything derives from ``seed``.
+
+    ``stress`` (:func:`draw_stress`, :func:`check_stress`): model-form differences a rig always
+    has, for no-effect records that should still read ``none``: ``ar1`` coloured noise
+    (:func:`coloured_noise`), ``quantisation`` of every recorded channel to a step of that
+    fraction of its clean RMS on the estimation record (the same step on every record, as a
+    rig's converters), design ``constants`` off by relative offsets and an ``input_filter``
+    time constant of command shaping (:func:`shape_command`). ``truth["stress"]`` holds them
+    with the quantisation steps per channel.
     """
     concept = _check_concept(concept)
     if variant is None:
@@ -815,19 +935,32 @@ def make_records(concept: str, variant: str | None, params: Mapping[str, float] 
     chosen = record_channels(concept, channels)
     model = get_model(concept)
     index = [model.outputs.index(ch) for ch in chosen]
+    stress = check_stress(stress)
     streams = np.random.SeedSequence(int(seed)).spawn(4)
     base = perturbed_base(concept, np.random.default_rng(streams[0]), base_perturbation, rig_perturbation)
-    records = []
+    records, steps = [], None
     for experiment, stream in zip((deploy_retract(), validation(), validation_scaled()), streams[1:]):
-        clean = simulate_variant(concept, experiment, base, variant, checked)[:, index]
-        values = add_noise(clean, noise, np.random.default_rng(stream)) if noise > 0 else clean
+        clean = simulate_variant(concept, experiment, base, variant, checked,
+                                 constant_offsets=stress.get("constants"),
+                                 input_filter=stress.get("input_filter", 0.0))[:, index]
+        rng = np.random.default_rng(stream)
+        if noise > 0 and stress.get("ar1", 0.0) > 0:
+            values = coloured_noise(clean, noise, stress["ar1"], rng)
+        else:
+            values = add_noise(clean, noise, rng) if noise > 0 else clean
+        if stress.get("quantisation", 0.0) > 0:
+            if steps is None:   # the estimation record's RMS sets the converters' steps
+                steps = stress["quantisation"] * np.sqrt(np.mean(clean ** 2, axis=0))
+            values = quantise(values, steps)
         records.append(Measurement(concept, experiment, chosen, values,
                                    {"noise_fraction": noise, "seed": int(seed),
                                     "source": "simulated (independent simulator, gap variants)"}))
+    if steps is not None:
+        stress = {**stress, "steps": dict(zip(chosen, map(float, steps)))}
     truth = {"concept": concept, "variant": variant, "family": family, "expected": expected,
              "parameters": checked, "base_parameters": base, "seed": int(seed), "noise": noise,
              "base_perturbation": base_perturbation, "rig_perturbation": rig_perturbation,
-             "channels": list(chosen), "experiments": [r.experiment.name for r in records]}
+             "channels": list(chosen), "experiments": [r.experiment.name for r in records], "stress": stress}
     return records[0], records[1], records[2], truth
 
 
@@ -848,7 +981,8 @@ def visibility(concept: str, variant: str, params: Mapping[str, float], *, exper
     return dict(zip(chosen, map(float, excess)))
 
 
-__all__ = ["CONCEPTS", "FAMILIES", "REALISTIC_CHANNELS", "VARIANTS", "Variant", "VariantError", "VariantParameter",
-           "check_variant_parameters", "delay_allpass", "delay_hermite", "draw_variant_parameters", "get_variant",
-           "make_records", "perturbed_base", "record_channels", "simulate_variant", "validation_scaled",
+__all__ = ["CONCEPTS", "FAMILIES", "REALISTIC_CHANNELS", "STRESS_CONSTANTS", "STRESS_RANGES", "VARIANTS", "Variant",
+           "VariantError", "VariantParameter", "check_stress", "check_variant_parameters", "coloured_noise",
+           "delay_allpass", "delay_hermite", "draw_stress", "draw_variant_parameters", "get_variant", "make_records",
+           "perturbed_base", "quantise", "record_channels", "shape_command", "simulate_variant", "validation_scaled",
            "visibility"]

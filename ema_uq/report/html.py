@@ -379,6 +379,18 @@ def _gap_section(study: dict, results: Path) -> str:
     return "\n".join(parts)
 
 
+def _left_out_table(matrix: dict) -> str:
+    """The left-out-family confusion matrix as a table (rows: family left out; right: a flag)."""
+    if not matrix:
+        return ""
+    columns = sorted({c for row in matrix.values() for c in row},
+                     key=lambda c: ({"ambiguous": 1, "unexplained": 1, "none": 2}.get(c, 0), c))
+    rows = [[html.escape(r)] + [str(matrix[r].get(c, 0) or "·") for c in columns] for r in sorted(matrix)]
+    return ("<h3>Left-out families</h3><p>Each in-catalogue variant diagnosed with its family's forms removed "
+            "from the catalogue; the right verdict is a flag (“unexplained” or “ambiguous”).</p>"
+            + _table(["family left out", *map(html.escape, columns)], rows))
+
+
 def _selfcheck_section(results: Path) -> str:
     from . import gap_figures
 
@@ -388,20 +400,27 @@ def _selfcheck_section(results: Path) -> str:
     sc = io.read_json(path)
     if "top1" not in sc:
         return '<p class="muted">Self-check file of an older format; rerun ema-uq gap-selfcheck.</p>'
-    targets, met = sc["targets"], sc["met"]
+    targets = sc["targets"]
+    status = sc.get("status") or {k: "met" if v else "not met" for k, v in sc["met"].items()}
 
     def rate(name, key, score, cmp):
-        r = sc[score]
+        r = sc.get(score)
+        if r is None or key not in targets:
+            return [name, "–", "", "", ""]
         low, high = r["interval95"]
-        mark = "met" if met[key] else '<span class="flag">NOT met</span>'
+        mark = status.get(key, "")
+        mark = mark if mark == "met" else f'<span class="flag">{html.escape(mark)}</span>'
         return [name, f"{_fmt(r['value'], 3)} ({r['count']}/{r['n']})", f"{_fmt(low, 2)}–{_fmt(high, 2)}",
                 f"{cmp} {targets[key]}", mark]
 
     s = sc["shrink"]
     rows = [rate("top-1 accuracy (right family named)", "top1_accuracy", "top1", "≥"),
             rate("false-alarm rate (no-effect cases)", "false_alarm_rate", "false_alarms", "≤"),
-            rate("outside the catalogue flagged (only “unexplained” counts)", "out_of_catalogue_flagged",
+            rate("outside the catalogue flagged (“unexplained” or “ambiguous”)", "out_of_catalogue_flagged",
                  "out_of_catalogue_flagged", "≥"),
+            rate("left-out family flagged (its forms removed from the catalogue)", "left_out_flagged",
+                 "left_out_flagged", "≥"),
+            rate("wrong family named with high confidence", "wrong_family_confident", "wrong_family_confident", "≤"),
             ["honest shrink where the right family was named (median, quartiles)",
              f"{_fmt(s['median'], 3)} ({_fmt(s['q25'], 3)}–{_fmt(s['q75'], 3)}), n = {s['n']}",
              f"median se {_fmt(s['median_se'], 2)}", "", ""]]
@@ -409,9 +428,10 @@ def _selfcheck_section(results: Path) -> str:
     for c in sc["cases"]:
         shrink = "" if c.get("shrink") is None else f"{_fmt(c['shrink'], 3)} ± {_fmt(c.get('shrink_se'), 2)}"
         ok = "yes" if c["correct"] else '<span class="flag">no</span>'
-        cases.append([html.escape(str(c["variant"] or "none")), html.escape(str(c["truth_family"] or c["expected"])),
+        cases.append([html.escape(str(c["case_id"]).split("/")[-1]), html.escape(str(c["truth_family"] or c["expected"])),
                       html.escape(c["sensors"]), html.escape(c["verdict"]),
-                      html.escape(str(c["family"])) if c["verdict"] == "effect" else "–",
+                      html.escape(str(c["family"]) if c["verdict"] == "effect"
+                                  else " | ".join(c.get("ambiguous_families") or []) or "–"),
                       html.escape(c["confidence"]), shrink, f"{c['wall_time_s']:.0f}", ok])
     settings = sc.get("settings", {})
     return ("<p>Rig-like records of an independent simulator with effect variants written apart from the "
@@ -421,9 +441,15 @@ def _selfcheck_section(results: Path) -> str:
             f"sensor sets {html.escape(', '.join(settings.get('sensors', [])))}, seed {sc['seed']}"
             f"{', quick subset' if sc.get('quick') else ''}; {sc['n_cases']} cases in {sc['wall_time_s']:.0f} s.</p>"
             + _table(["score", "value", "95 % interval", "target", ""], rows)
+            + "<p>A target is met or not met only where the one-sided 95 % Clopper-Pearson bound shows it; "
+            "“n too small” otherwise. False alarms: a named effect on a no-effect case (half of them with "
+            "model-form stress); a low-confidence “unexplained” is a soft alarm "
+            f"({_fmt((sc.get('soft_alarms') or {}).get('value'), 3)}), a high-confidence one a hard alarm "
+            f"({_fmt((sc.get('hard_alarms') or {}).get('value'), 3)}).</p>"
             + "<h3>Confusion matrix</h3>" + _img(gap_figures.selfcheck_confusion(sc), "self-check confusion matrix")
+            + _left_out_table(sc.get("confusion_left_out") or {})
             + "<h3>Cases</h3>"
-            + _table(["variant", "truth family", "sensors", "verdict", "family found", "confidence",
+            + _table(["case", "truth family", "sensors", "verdict", "family found", "confidence",
                       "shrink ± se", "time [s]", "right"], cases))
 
 

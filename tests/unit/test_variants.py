@@ -152,3 +152,71 @@ def test_fractional_delays():
     for lag, order in ((0.4, 1), (2.37, 2), (2.9, 3)):
         a = V.thiran_coefficients(lag, order)
         assert np.all(np.abs(np.roots(a)) < 1.0)  # a stable all-pass
+
+
+# --------------------------------------------------------------------------------------
+# model-form stress of no-effect records
+# --------------------------------------------------------------------------------------
+def test_stress_draws_stay_in_their_stated_ranges():
+    rng = np.random.default_rng(5)
+    for concept in ("htls", "lths"):
+        names = get_model(concept).constants.names
+        for _ in range(30):
+            stress = V.draw_stress(concept, rng)
+            assert V.STRESS_RANGES["ar1"][0] <= stress["ar1"] <= V.STRESS_RANGES["ar1"][1]
+            assert V.STRESS_RANGES["quantisation"][0] <= stress["quantisation"] <= V.STRESS_RANGES["quantisation"][1]
+            assert V.STRESS_RANGES["input_filter"][0] <= stress["input_filter"] <= V.STRESS_RANGES["input_filter"][1]
+            assert set(stress["constants"]) == {n for n in V.STRESS_CONSTANTS if n in names}
+            assert max(abs(v) for v in stress["constants"].values()) <= V.STRESS_RANGES["constant_offset"]
+    with pytest.raises(ValueError, match="unknown stress"):
+        V.check_stress({"drift": 1.0})
+    with pytest.raises(ValueError, match="outside"):
+        V.check_stress({"ar1": 1.0})
+    with pytest.raises(ValueError, match="no design constant"):
+        V.simulate_variant("htls", deploy_retract(), constant_offsets={"i_MG": 0.01})
+
+
+def test_coloured_noise_has_its_ar1_coefficient_and_white_variance():
+    clean = np.full((40000, 2), 3.0)
+    noisy = V.coloured_noise(clean, 0.02, 0.7, np.random.default_rng(1))
+    e = (noisy - clean) / (0.02 * 3.0)
+    for j in range(2):
+        assert abs(np.corrcoef(e[:-1, j], e[1:, j])[0, 1] - 0.7) < 0.02
+        assert abs(np.std(e[:, j]) - 1.0) < 0.05
+
+
+def test_stressed_record_shows_quantisation_coloured_noise_offsets_and_command_shaping():
+    stress = {"ar1": 0.6, "quantisation": 0.005, "constants": {"i_TP1": 0.03, "r": -0.02}, "input_filter": 0.04}
+    est, val, val2, truth = V.make_records("htls", None, None, seed=21, channels="realistic", stress=stress)
+    steps = np.array([truth["stress"]["steps"][ch] for ch in est.channels])
+    for record in (est, val, val2):                       # every record on the same converter steps
+        ratio = record.values / steps
+        np.testing.assert_allclose(ratio, np.round(ratio), atol=1e-6)
+    model = get_model("htls")
+    index = [model.outputs.index(ch) for ch in est.channels]
+    clean = V.simulate_variant("htls", deploy_retract(), truth["base_parameters"], constant_offsets=stress["constants"],
+                               input_filter=stress["input_filter"])[:, index]
+    np.testing.assert_allclose(steps, 0.005 * np.sqrt(np.mean(clean ** 2, axis=0)))
+    noise = est.values - clean
+    lag1 = [np.corrcoef(noise[:-1, j], noise[1:, j])[0, 1] for j in range(noise.shape[1])]
+    assert min(lag1) > 0.5 and max(lag1) < 0.7              # the AR(1) colour (quantisation whitens a little)
+    # the offsets and the command shaping are in the records: clean simulation without them differs
+    plain = V.simulate_variant("htls", deploy_retract(), truth["base_parameters"])[:, index]
+    sigma = 0.02 * np.sqrt(np.mean(plain ** 2, axis=0))
+    assert np.max(np.abs(clean - plain) / sigma) > 1.0
+    noiseless = V.make_records("htls", None, None, seed=21, channels="realistic", noise=0.0,
+                               stress={"constants": stress["constants"], "input_filter": stress["input_filter"]})[0]
+    np.testing.assert_allclose(noiseless.values, clean)
+    omega = model.outputs.index("Omega")
+    geared = V.simulate_variant("htls", deploy_retract(), constant_offsets={"i_TP1": 0.03, "i_TP2": 0.03})[:, omega]
+    nominal = V.simulate_variant("htls", deploy_retract())[:, omega]
+    assert np.sqrt(np.mean(geared ** 2)) / np.sqrt(np.mean(nominal ** 2)) == pytest.approx(1.03, abs=0.01)
+
+
+def test_command_shaping_is_a_first_order_lag():
+    dt, tau = 0.01, 0.04
+    step = np.r_[0.0, np.ones(99)]
+    out = V.shape_command(step, tau, dt)
+    k = np.arange(100)
+    np.testing.assert_allclose(out, np.where(k == 0, 0.0, 1.0 - np.exp(-k * dt / tau)), atol=1e-12)
+    np.testing.assert_array_equal(V.shape_command(step, 0.0, dt), step)

@@ -99,6 +99,7 @@ def test_default_dry_run_plans_every_study(tmp_path):
     assert jobs["sample"] == jobs["gap"] == synthetic + real, jobs
     assert jobs["identifiability"] == jobs["sensitivity"] == jobs["gap_selfcheck"] == synthetic, jobs
     assert jobs["sensitivity_chunk"] == 16, jobs
+    assert jobs["gap_selfcheck_case"] == 8 * synthetic, jobs     # the self-check scattered, one job per part
 
 
 def test_lint_reports_only_the_explained_conda_finding(tmp_path):
@@ -177,7 +178,7 @@ def test_editing_the_report_template_reruns_only_the_report(smoke_run):
     ("data", "set", {"k_y": 0.45}, {"simulate": 4, "identify": 2, "sample": 1, "identifiability": 1, "gap": 1,
                                     "sensitivity_chunk": 2, "sensitivity": 1, "report": 1}),
     ("gap", "rig_effects", ["backlash"], {"simulate": 2, "gap": 1, "report": 1}),
-    ("gap", "selfcheck", "full", {"gap_selfcheck": 1, "report": 1}),
+    ("gap", "selfcheck", "full", {"gap_selfcheck_case": 8, "gap_selfcheck": 1, "report": 1}),
 ])
 def test_changed_study_value_reruns_exactly_the_affected_rules(smoke_run, tmp_path, section, key, value, expected):
     workdir = tmp_path / "wf"

@@ -1,0 +1,274 @@
+"""The self-check harness: left-out families, stressed no-effect cases, target status,
+scatter/gather and the frozen protocol of benchmarks/gap.py."""
+from __future__ import annotations
+
+import importlib.util
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ema_uq.cli import main as cli_main
+from ema_uq.gap import selfcheck
+from ema_uq.gap.variants import VARIANTS
+from ema_uq.models import get_model
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+# --------------------------------------------------------------------------------------
+# left-out families
+# --------------------------------------------------------------------------------------
+def test_left_out_cases_lack_every_form_of_their_family_and_carry_it():
+    cases = selfcheck.build_cases(["htls", "lths"], seed=11, kinds=["left_out"])
+    inside = [v for v, var in VARIANTS.items() if var.family is not None]
+    assert len(cases) == 2 * 2 * len(inside) and {c.kind for c in cases} == {"left_out"}
+    families = {c.family for c in cases}
+    assert families == {var.family for var in VARIANTS.values() if var.family is not None}   # every family
+    for case in cases:
+        catalogue = get_model(case.concept).effect_catalogue
+        forms = [n for n, e in catalogue.items() if (getattr(e, "family", None) or n) == case.family]
+        assert forms and not set(forms) & set(case.candidates)                 # the family's forms are gone
+        assert set(case.candidates) | set(forms) == set(catalogue)             # and nothing else
+        assert VARIANTS[case.variant].family == case.family and case.expected == "unexplained"
+    # other records than the in-catalogue case of the same variant; the records carry the variant
+    effect = {c.case_id: c for c in selfcheck.build_cases(["htls"], seed=11, sensors=["realistic"], kinds=["effect"])}
+    case = next(c for c in cases if c.concept == "htls" and c.sensors == "realistic"
+                and c.variant == "backlash_output_deadzone")
+    assert case.seed != effect["htls/realistic/backlash_output_deadzone"].seed
+    *_, truth = selfcheck.case_records(case)
+    assert truth["variant"] == "backlash_output_deadzone" and truth["family"] == "backlash"
+    assert truth["parameters"]["delta"] > 0
+
+
+def test_a_left_out_case_hands_the_reduced_catalogue_to_the_diagnosis(monkeypatch):
+    seen = {}
+
+    def fake(measurements, validation, *, candidates=None, settings=None, seed=None):
+        seen["candidates"] = candidates
+        raise RuntimeError("stop")
+
+    monkeypatch.setattr(selfcheck, "diagnose", fake)
+    monkeypatch.setattr(selfcheck, "case_records",
+                        lambda case: (None, None, None, {"parameters": {}, "stress": {}}))
+    case = selfcheck._case(11, "htls", "full", "stribeck_rational", left_out=True)
+    outcome = selfcheck.run_case(case)
+    assert outcome.verdict == "error" and "stribeck" not in seen["candidates"]
+    assert set(seen["candidates"]) == set(case.candidates)
+
+
+def _outcome(kind, family, verdict, found=None, confidence="high", stressed=False, index=-1):
+    variant = {"effect": f"{family}_v", "left_out": f"{family}_v", "none": None, "out_of_catalogue": "gremlin"}[kind]
+    case = selfcheck.Case(f"htls/full/{variant}/{index}", "htls", "full", kind, variant,
+                          family if kind in ("effect", "left_out") else None, 7, stressed)
+    return selfcheck.CaseOutcome(case, verdict, found and f"{found}_form", found if verdict == "effect" else None,
+                                 confidence, float("nan"), float("nan"), None, 0.02, 0.02, {}, 1.0, index=index)
+
+
+def test_left_out_scores_confusion_and_confident_wrong_family():
+    result = selfcheck.SelfCheckResult([
+        _outcome("left_out", "backlash", "unexplained"),
+        _outcome("left_out", "backlash", "ambiguous"),
+        _outcome("left_out", "backlash", "effect", "shaft_compliance", "high"),     # confident and wrong
+        _outcome("left_out", "stribeck", "effect", "load_dependent_friction", "low"),
+        _outcome("left_out", "stribeck", "none"),
+        _outcome("effect", "stribeck", "effect", "stribeck", "high"),
+        _outcome("effect", "sensor_delay", "effect", "backlash", "high"),           # confident and wrong
+        _outcome("out_of_catalogue", None, "effect", "stribeck", "low"),
+        _outcome("none", None, "none"),
+        _outcome("none", None, "unexplained", confidence="low", stressed=True),     # soft alarm: right
+        _outcome("none", None, "unexplained", confidence="high", stressed=True),    # neither false nor right
+        _outcome("none", None, "ambiguous", stressed=True),                         # names effects: false alarm
+    ], seed=11, quick=False, wall_time_s=1.0)
+    assert result.left_out_flagged["count"] == 2 and result.left_out_flagged["n"] == 5
+    assert result.wrong_family_confident["count"] == 2 and result.wrong_family_confident["n"] == 8
+    assert result.false_alarms["count"] == 1 and result.soft_alarms["count"] == 1 and result.any_alarm["count"] == 3
+    assert result.hard_alarms["count"] == 1
+    by_stress = result.false_alarms_by_stress
+    assert by_stress["stressed"]["false"]["count"] == 1 and by_stress["plain"]["false"]["n"] == 1
+    assert [o.correct for o in result.of("none")] == [True, True, False, False]
+    lofo = result.confusion_left_out()
+    assert lofo == {"backlash": {"unexplained": 1, "ambiguous": 1, "shaft_compliance": 1},
+                    "stribeck": {"load_dependent_friction": 1, "none": 1}}
+    assert "backlash" not in result.confusion().get("outside catalogue", {})
+    text = result.summary()
+    assert "left-out families" in text and "wrong family, high confidence" in text
+    data = json.loads(json.dumps(result.to_json()))
+    assert data["confusion_left_out"] == lofo and set(data["status"]) == set(selfcheck.TARGETS)
+    assert selfcheck.SelfCheckResult.from_json(data).to_json() == result.to_json()
+
+
+# --------------------------------------------------------------------------------------
+# target status
+# --------------------------------------------------------------------------------------
+def test_target_status_says_n_too_small_unless_the_one_sided_bound_shows_it():
+    status = selfcheck.target_status
+    assert status(1, 1, 0.90, ">=") == "n too small"              # never met on one case
+    assert status(0, 1, 0.90, ">=") == "n too small"
+    assert status(0, 0, 0.90, ">=") == "n too small"
+    assert status(29, 29, 0.90, ">=") == "met"                    # 0.95^(1/29) > 0.90 > 0.95^(1/28)
+    assert status(28, 28, 0.90, ">=") == "n too small"
+    assert status(5, 20, 0.90, ">=") == "not met"
+    assert status(0, 59, 0.05, "<=") == "met" and status(0, 58, 0.05, "<=") == "n too small"
+    assert status(0, 59, 0.05, "<=", minimum_n=60) == "n too small"
+    assert status(6, 20, 0.05, "<=") == "not met"
+    result = selfcheck.SelfCheckResult([_outcome("effect", "stribeck", "effect", "stribeck")], 1, False, 1.0)
+    assert result.status["top1_accuracy"] == "n too small" and result.met["top1_accuracy"] is False
+    assert result.status["left_out_flagged"] == "n too small"     # no cases at all
+
+
+# --------------------------------------------------------------------------------------
+# stressed no-effect cases
+# --------------------------------------------------------------------------------------
+def test_every_second_none_case_is_stressed_and_its_stress_is_seeded():
+    nones = selfcheck.build_cases(["htls"], seed=11, sensors=["realistic"], kinds=["none"], none_per_set=6)
+    assert [c.stressed for c in nones] == [False, True] * 3
+    assert all(("stressed" in c.case_id) is c.stressed for c in nones)
+    assert selfcheck.case_stress(nones[0]) is None
+    a, b = selfcheck.case_stress(nones[1]), selfcheck.case_stress(nones[1])
+    assert a == b and a != selfcheck.case_stress(nones[3])
+    *_, truth = selfcheck.case_records(nones[1])
+    assert truth["stress"]["ar1"] == a["ar1"] and truth["stress"]["constants"] == a["constants"]
+
+
+# --------------------------------------------------------------------------------------
+# scatter and gather
+# --------------------------------------------------------------------------------------
+def _fake_run_case(case, settings=None):
+    verdict = {"effect": "effect", "none": "none", "out_of_catalogue": "unexplained", "left_out": "ambiguous"}[case.kind]
+    family = case.family if case.kind == "effect" and case.seed % 3 else None
+    if case.kind == "effect" and family is None:
+        verdict = "unexplained"
+    return selfcheck.CaseOutcome(case, verdict, family and f"{family}_form", family, "high", float(case.seed % 7) / 7,
+                                 0.01, None, 0.02, 0.01, {"x": float(case.seed % 5)}, 0.5)
+
+
+def test_chunks_gathered_equal_one_run(monkeypatch, tmp_path):
+    monkeypatch.setattr(selfcheck, "run_case", _fake_run_case)
+    kw = dict(seed=11, concepts=["htls"], sensors=["realistic"], none_per_set=3)
+
+    def comparable(result):
+        data = result.to_json()
+        data.pop("wall_time_s"), data.pop("provenance")
+        return data
+
+    whole = selfcheck.self_check(**kw)
+    parts = [selfcheck.self_check(**kw, chunk=f"{i}/3") for i in (2, 0, 1)]
+    assert sum(len(p.outcomes) for p in parts) == len(whole.outcomes) and len(parts[1].outcomes) >= 1
+    assert comparable(selfcheck.gather(parts)) == comparable(whole)
+    # through JSON files and the CLI verb
+    files = []
+    for i in range(3):
+        out = tmp_path / f"part_{i}.json"
+        assert cli_main(["gap-selfcheck", "--seed", "11", "--concepts", "htls", "--sensors", "realistic",
+                         "--none-per-set", "3", "--chunk", f"{i}/3", "--quiet", "--out", str(out)]) == 0
+        files.append(str(out))
+    assert cli_main(["gap-selfcheck", "--gather", *files, "--out", str(tmp_path / "all.json")]) == 0
+    gathered = selfcheck.SelfCheckResult.from_json(json.loads((tmp_path / "all.json").read_text()))
+    assert comparable(gathered) == comparable(whole)
+    with pytest.raises(selfcheck.SelfCheckError, match="chunks 0/3..2/3"):
+        selfcheck.gather(parts[:2])
+    other = selfcheck.self_check(**{**kw, "seed": 12}, chunk="0/3")
+    with pytest.raises(selfcheck.SelfCheckError, match="different runs"):
+        selfcheck.gather([other, parts[0], parts[2]])
+    with pytest.raises(selfcheck.SelfCheckError, match="0..N-1"):
+        selfcheck.parse_chunk("3/3")
+
+
+def test_cache_resumes_without_diagnosing_again(monkeypatch, tmp_path):
+    calls = []
+
+    def counting(case, settings=None):
+        calls.append(case.case_id)
+        return _fake_run_case(case)
+
+    monkeypatch.setattr(selfcheck, "run_case", counting)
+    kw = dict(seed=11, concepts=["htls"], sensors=["full"], none_per_set=2, kinds=["none", "out_of_catalogue"],
+              cache=tmp_path / "cases")
+    first = selfcheck.self_check(**kw, chunk="0/2")
+    n_first = len(calls)
+    whole = selfcheck.self_check(**kw)
+    assert len(calls) == n_first + (len(whole.outcomes) - len(first.outcomes))   # only the others ran
+    assert [o.to_json() for o in whole.outcomes[::2]] == [o.to_json() for o in first.outcomes]
+
+
+# --------------------------------------------------------------------------------------
+# the frozen protocol (benchmarks/gap.py)
+# --------------------------------------------------------------------------------------
+def _bench():
+    spec = importlib.util.spec_from_file_location("gap_bench", ROOT / "benchmarks" / "gap.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_protocol_refuses_the_evaluation_block_when_a_source_changed(tmp_path, monkeypatch):
+    bench = _bench()
+    root = tmp_path / "repo"
+    for rel in bench.SOURCE_FILES + bench.source_globs(ROOT):
+        target = root / rel
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(ROOT / rel, target)
+    protocol = tmp_path / "protocol.yaml"
+    frozen = bench.freeze(protocol, root=root, development=[11], evaluation=[5201])
+    assert frozen["blocks"]["evaluation"]["seeds"] == [5201] and len(frozen["sources"]["sha256"]) == 64
+    assert bench.check_sources(bench.load_protocol(protocol), root=root) is None
+    with open(root / "ema_uq" / "gap" / "attribute.py", "a", encoding="utf-8") as fh:
+        fh.write("\n# changed\n")
+    message = bench.check_sources(bench.load_protocol(protocol), root=root)
+    assert message is not None and "--freeze" in message and "\n" not in message
+    assert "ema_uq/gap/attribute.py" in message
+    monkeypatch.setattr(bench, "run_block", lambda *a, **k: pytest.fail("ran a block"))
+    with pytest.raises(SystemExit, match="--freeze"):
+        bench.protocol_main(protocol, "evaluation", root=root, out_dir=tmp_path / "out")
+    # re-freezing writes a new hash and a new evaluation block, the old one recorded as spent
+    again = bench.freeze(protocol, root=root)
+    assert again["sources"]["sha256"] != frozen["sources"]["sha256"]
+    assert again["blocks"]["evaluation"]["spent"] == [[5201]]
+    new = again["blocks"]["evaluation"]["seeds"]
+    assert not set(new) & {5201, 11} and again["blocks"]["development"]["seeds"] == [11]
+    assert bench.check_sources(bench.load_protocol(protocol), root=root) is None
+
+
+def test_the_committed_protocol_fixes_catalogue_thresholds_and_blocks():
+    bench = _bench()
+    protocol = bench.load_protocol(ROOT / "benchmarks" / "gap_protocol.yaml")
+    for concept in ("htls", "lths"):
+        assert protocol["catalogue"][concept] == selfcheck.catalogue_families(concept)
+    assert protocol["thresholds"]["bic_min"] > 0 and "max_effects" in protocol["settings"]
+    dev, ev = protocol["blocks"]["development"]["seeds"], protocol["blocks"]["evaluation"]["seeds"]
+    assert dev and ev and not set(dev) & set(ev) and not set(ev) & {1, 2, 2024, *selfcheck.CALIBRATION_SEEDS}
+    assert set(protocol["sources"]["files"]) >= {"ema_uq/gap/attribute.py", "ema_uq/models/effects.py",
+                                                 "ema_uq/models/effect_kernels.py", "ema_uq/models/htls.py",
+                                                 "ema_uq/models/lths.py", "ema_uq/models/cranfield.py"}
+    assert protocol["selfcheck"]["none_per_set"] * 4 >= 60
+
+
+def test_protocol_blocks_run_resume_and_print_side_by_side(tmp_path, monkeypatch, capsys):
+    bench = _bench()
+    calls = []
+
+    def fake(case, settings=None):
+        calls.append(case.case_id)
+        return _fake_run_case(case)
+
+    monkeypatch.setattr(selfcheck, "run_case", fake)
+    protocol = tmp_path / "protocol.yaml"
+    frozen = bench.freeze(protocol, development=[11], evaluation=[5201])
+    frozen["selfcheck"].update(concepts=["htls"], sensors=["realistic"], kinds=["none", "out_of_catalogue"],
+                               none_per_set=2)
+    protocol.write_text(bench.yaml.safe_dump(frozen), encoding="utf-8")
+    out = tmp_path / "results"
+    bench.protocol_main(protocol, "development", out_dir=out, chunk="1/2")
+    n_part = len(calls)
+    bench.protocol_main(protocol, "development", out_dir=out)
+    n_cases = 2 + sum(v.family is None for v in VARIANTS.values())
+    assert n_part == n_cases // 2 and len(calls) == n_cases                 # the part was not diagnosed again
+    cached = list((out / "development").glob("*/seed11/*.json"))
+    assert len(cached) == n_cases and cached[0].parent.parent.name == frozen["sources"]["sha256"][:12]
+    bench.protocol_main(protocol, "evaluation", out_dir=out)
+    text = capsys.readouterr().out
+    assert "[[Blocks]] (seeds development: 11; evaluation: 5201)" in text
+    assert json.loads((out / "evaluation.json").read_text())["settings"]["seeds"] == [5201]
