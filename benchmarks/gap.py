@@ -56,7 +56,7 @@ import yaml
 
 from ema_uq.experiments import Measurement, add_noise, deploy_retract, validation
 from ema_uq.gap import diagnose
-from ema_uq.gap import attribute
+from ema_uq.gap import attribute, predictable, structure, verdict
 from ema_uq.gap.selfcheck import (CALIBRATION_SEEDS, DEFAULT_SEED, KINDS, NONE_PER_SET, SENSOR_SETS, TARGET_FALSE_ALARM,
                                   TARGET_NAMES, TARGET_TOP1, TARGETS, SelfCheckResult, catalogue_families, family_of,
                                   self_check)
@@ -146,11 +146,16 @@ def _frozen_method() -> dict:
                                "start_multiples": [float(m) for m in strategy.start_multiples],
                                "where_source": strategy.where_source,
                                "metric": type(strategy.metric).__name__,
-                               "z_significant": getattr(strategy.metric, "z_significant", None)}
+                               "z_significant": getattr(strategy.metric, "z_significant", None),
+                               "structure": plain(strategy.structure),
+                               "margin_evidence": float(strategy.margin_evidence)}
     return {"catalogue": {c: catalogue_families(c) for c in PROTOCOL_SELFCHECK["concepts"]},
             "thresholds": plain(Thresholds()), "settings": plain(DiagnosisSettings()),
             "constants": {"Z_HELD_OUT": attribute.Z_HELD_OUT, "PROFILE_POINTS": attribute.PROFILE_POINTS,
-                          "SHRINK_BLOCKS": attribute.SHRINK_BLOCKS, "SHRINK_REPLICATES": attribute.SHRINK_REPLICATES},
+                          "SHRINK_BLOCKS": attribute.SHRINK_BLOCKS, "SHRINK_REPLICATES": attribute.SHRINK_REPLICATES,
+                          "STROKE_BINS": structure.STROKE_BINS, "BANDS": [list(b) for b in structure.BANDS],
+                          "RIDGE_PENALTIES": list(predictable.PENALTIES),
+                          "MAX_AUTOCORRELATION_LAG": verdict.MAX_AUTOCORRELATION_LAG},
             "strategies": strategies}
 
 
