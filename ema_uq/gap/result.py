@@ -146,6 +146,16 @@ class GapResult:
             self.family = row.family if row is not None else self.effect
 
     @property
+    def family_probabilities(self) -> dict[str, float]:
+        """{family: probability} of the open-set verdict (``none``: the nominal model), largest first."""
+        return dict(self.open_set.get("family_probabilities") or {})
+
+    @property
+    def ambiguous_families(self) -> list[str]:
+        """The families an ``ambiguous`` verdict cannot tell apart (empty otherwise)."""
+        return [c["family"] for c in self.open_set.get("contenders") or []]
+
+    @property
     def best(self) -> CandidateScore | None:
         return self.ranking[0] if self.ranking else None
 
