@@ -1106,7 +1106,8 @@ def diagnose(
                 "contenders": [{"family": f, "probability": probabilities[f]} for f in decided.contenders],
                 "structure_left": [c.to_json() for c in best_left], "where_left": where_left(best_left),
                 "verdict_reason": decided.reason,
-                "state_predictable": None if run.predictable is None else run.predictable.to_json()}
+                "state_predictable": (None if run.predictable is None
+                                      else {**run.predictable.to_json(), "deterministic": _deterministic(run)})}
     fit = nominal.fit
     nominal_json = {"log_det_R": fit.log_det_r, "objective": fit.objective, "converged": fit.converged,
                     "fixed": run.fixed, "iterations": fit.iterations, "n_samples": fit.n_samples,

@@ -227,9 +227,9 @@ class GapResult:
         lines = [f"    family probability = {', '.join(shown)} (evidence x {o.get('evidence_tempering', 1.0):.3g}"
                  f" for autocorrelated residuals; named only beyond 2 ln B = {o.get('margin_evidence', 10):g})"]
         p = o.get("state_predictable") or {}
-        if p.get("z") is not None:
+        if p.get("z") is not None and p.get("share") is not None:
             lines.append(f"    state predicts     = {p['share']:.0%} of the held-out gap (z {p['z']:.1f}): "
-                         + ("a model error" if p["z"] > 5 and p["share"] >= 0.1 else "not a function of the state"))
+                         + ("a model error" if p.get("deterministic") else "not shown to be a function of the state"))
         if o.get("verdict_reason"):
             lines.append(f"    why not named      = {o['verdict_reason']}")
         for group, cells in o.get("where_left", {}).items():
