@@ -78,7 +78,9 @@ def split_table(read, splits: dict | None = None) -> tuple[list[dict], dict[str,
                 "reproducible_share": r["reproducible_share"],
                 "play_m": None if play is None else play.parameters["backlash_play"]["estimate"],
                 "play_std_m": None if play is None else play.parameters["backlash_play"]["std"],
-                "play_delta_bic": None if play is None else play.delta_bic}
+                "play_delta_bic": None if play is None else play.delta_bic,
+                "family_probabilities": r["family_probabilities"], "contenders": r["contenders"],
+                "verdict_reason": r["verdict_reason"], "where_left": r["where_left"]}
         rows.append(row)
         print(f"    {label:<22} {row['right']}/{len(EXPECTED)}  "
               + "  ".join(f"{name}: {v['verdict']}" for name, v in row["sets"].items()), flush=True)

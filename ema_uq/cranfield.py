@@ -422,7 +422,19 @@ class RecordSetDiagnosis:
                 "selection_shrink": r.ranking[0].selection_shrink if r.ranking else None,
                 "reproducible_share": r.gap.get("reproducible_share"),
                 "reproducible_shrink": r.ranking[0].reproducible_shrink if r.ranking else None,
-                "effect_parameters": r.effect_parameters, "wall_time_s": r.wall_time_s}
+                "effect_parameters": r.effect_parameters, "wall_time_s": r.wall_time_s,
+                **open_set_row(getattr(r, "open_set", {}) or {})}
+
+
+def open_set_row(open_set: Mapping[str, Any], top: int = 3) -> dict[str, Any]:
+    """Why a record set is or is not named, in a row: the ``top`` family probabilities, the
+    contenders of an ``ambiguous`` verdict, the reason no family was named and, per group of
+    cells (channel, stroke, direction, regime, band), the first cell the best candidate leaves."""
+    probabilities = dict(list((open_set.get("family_probabilities") or {}).items())[:top])
+    return {"family_probabilities": {f: float(p) for f, p in probabilities.items()},
+            "contenders": [c["family"] for c in open_set.get("contenders") or []],
+            "verdict_reason": open_set.get("verdict_reason"),
+            "where_left": {group: cells[0] for group, cells in (open_set.get("where_left") or {}).items() if cells}}
 
 
 @dataclass
@@ -460,6 +472,7 @@ class CranfieldStudy:
                          f"{shrink_text:>13} {row['wall_time_s']:>6.1f}")
             for name, p in (row["effect_parameters"] if row["verdict"] == "effect" else {}).items():
                 lines.append(f"        {name:<30} = {p['estimate']:.4g} +/- {p['std']:.2g} {p.get('unit', '')}")
+            lines.extend(f"        {line}" for line in _why_lines(row))
         lines.append("    reproducible: share of the selection blocks' gap a replicate mean of the estimation runs "
                      "closes; closed: share of that the best candidate closes (the verdict's shrink test)")
         lines.append(f"    wall time {self.wall_time_s:.0f} s")
@@ -470,6 +483,19 @@ class CranfieldStudy:
                 "diagnoses": [{**d.row(), "estimation_blocks": d.estimation_blocks,
                                "held_out_blocks": d.held_out_blocks, "gap": d.result.to_json()} for d in self.diagnoses],
                 "wall_time_s": self.wall_time_s}
+
+
+def _why_lines(row: Mapping[str, Any]) -> list[str]:
+    """The open-set figures of a summary row: family probabilities, contenders, the reason no
+    family was named and the first cell left per group."""
+    lines = []
+    if row.get("family_probabilities"):
+        lines.append("family probability " + ", ".join(f"{f} {p:.3g}" for f, p in row["family_probabilities"].items())
+                     + (f"; contenders {' / '.join(row['contenders'])}" if row.get("contenders") else ""))
+    if row.get("verdict_reason"):
+        lines.append(f"why not named: {row['verdict_reason']}")
+    lines.extend(f"left ({group}): {cell}" for group, cell in (row.get("where_left") or {}).items())
+    return lines
 
 
 def _share(value: float | None) -> str:

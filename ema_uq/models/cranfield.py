@@ -21,6 +21,18 @@ Drive and carriage (continuous, the command held over [t_k, t_k+1), exact steps)
     tau v̇_m = u - v_m,   ẋ_m = v_m                             motor side, referred to the carriage
     x_n = x_m                                                   nut = motor side (no play)
 
+The drive is taken as rigid. A stepper lags its commanded angle by T_load / K_h and the screw
+and nut are elastic, so a compliant drive, x_n = x_m - c_drive sgn(u) F_d (F_d below), would
+pass every change of the delivered force into the position error. It was tested on the healthy
+records and is not in the model: the ML fit (det R) of c_drive >= 0 beside the other base
+parameters on runs 1-5 of normal.csv (every load, 24 300 samples) puts it on its bound 0
+(ΔBIC -10, the parameter penalty alone; log-likelihood gain on runs 6-10 +0.3), and the
+estimation log-likelihood falls monotonically as c_drive grows (-170 at 3e-7 m/N, -600 at
+1e-6 m/N, where 400 N would deflect 0.1 and 0.4 mm). The mean position error while moving
+moves by less than 0.02 mm between -40 and +40 kgf (runs 1-10), and in opposite directions on
+the up and down strokes, where a spring would shift both alike. So a position-error change of
+a faulted set has no path in this model from a force change.
+
 Drive current (a stepper driver draws a standstill current, a running current while it
 steps, losses of its own that grow with the step rate, and a share for the force it
 delivers; the current follows the commanded step rate u at once, the carriage follows it

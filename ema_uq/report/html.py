@@ -594,10 +594,24 @@ def _faults_section(results: Path) -> str:
                     # the split of a gap that is not there (insignificant: noise) says nothing
                     + ([_fmt(r.get("reproducible_share"), 2), _fmt(r.get("reproducible_shrink"), 2)]
                        if r.get("significant_selection", True) else ["no gap", "–"])
-                    + [shrink, params or "–"])
+                    + [shrink, params or "–", _fault_why(r)])
     parts.append(_table(["record set", "expected", "verdict", "confidence", "runner-up", "gap before", "gap after",
-                         "reproducible", "closed", "shrink ± se", "effect parameters (± CRB σ)"], rows))
+                         "reproducible", "closed", "shrink ± se", "effect parameters (± CRB σ)",
+                         "family probability; why not named; where left"], rows))
     return "\n".join(parts)
+
+
+def _fault_why(r: dict) -> str:
+    """Family probabilities (top 3), contenders, the reason no family was named and the first
+    cell left per group, of one fault-diagnosis row."""
+    probabilities = r.get("family_probabilities") or {}
+    parts = ([", ".join(f"{html.escape(f)} {_fmt(p, 3)}" for f, p in probabilities.items())] if probabilities else [])
+    if r.get("contenders"):
+        parts.append("contenders " + " / ".join(map(html.escape, r["contenders"])))
+    if r.get("verdict_reason"):
+        parts.append(html.escape(str(r["verdict_reason"])))
+    parts += [f"{html.escape(g)}: {html.escape(str(c))}" for g, c in (r.get("where_left") or {}).items()]
+    return "<br>".join(parts) or "–"
 
 
 def _stage_cost_section(results: Path) -> str:

@@ -399,6 +399,48 @@ def test_report_shows_the_reproducible_share_only_where_there_is_a_gap(drifting,
     assert ">no gap</td>" in rows["normal"] and "no gap" not in rows["drift"]
 
 
+def test_open_set_row_keeps_the_top_families_the_contenders_the_reason_and_the_first_cell_per_group():
+    open_set = {"family_probabilities": {"a": 0.6, "b": 0.3, "c": 0.07, "d": 0.03},
+                "contenders": [{"family": "a", "probability": 0.6}, {"family": "b", "probability": 0.3}],
+                "verdict_reason": "a leaves structure",
+                "where_left": {"channel": ["channel:position_error (holds 60%)", "channel:current (holds 10%)"],
+                               "band": ["band:position_error:0.02-0.1"], "stroke": []}}
+    row = study.open_set_row(open_set)
+    assert row == {"family_probabilities": {"a": 0.6, "b": 0.3, "c": 0.07}, "contenders": ["a", "b"],
+                   "verdict_reason": "a leaves structure",
+                   "where_left": {"channel": "channel:position_error (holds 60%)",
+                                  "band": "band:position_error:0.02-0.1"}}
+    assert study.open_set_row({}) == {"family_probabilities": {}, "contenders": [], "verdict_reason": None,
+                                      "where_left": {}}
+
+
+def test_an_unexplained_set_says_why_in_its_row_the_summary_and_the_report(drifting, tmp_path):
+    import html
+    import json
+    from dataclasses import replace
+
+    from ema_uq.report.html import _faults_section
+
+    _, result = drifting
+    drift = next(d for d in result.diagnoses if d.record_set == "drift")
+    row, open_set = drift.row(), drift.result.open_set
+    assert row["verdict"] == "unexplained"
+    assert row["verdict_reason"] == open_set.get("verdict_reason")
+    assert list(row["family_probabilities"]) == list(open_set["family_probabilities"])[:3]
+    assert row["where_left"] == {g: cells[0] for g, cells in open_set.get("where_left", {}).items() if cells}
+    # what a set left unexplained by the cell test carries, through the summary and the report
+    reason = "lubrication_loss wins the margin but leaves structure <in position_error>"
+    cell = "band:position_error:0.02-0.1 fs (holds 60% of the excess power, closed 5%, z 9.0)"
+    told = replace(drift.result, open_set={**open_set, "verdict_reason": reason, "where_left": {"band": [cell, "x"]}})
+    shown = replace(result, diagnoses=[d if d is not drift else replace(d, result=told) for d in result.diagnoses])
+    summary = shown.summary()
+    assert f"why not named: {reason}" in summary and f"left (band): {cell}" in summary and "left (band): x" not in summary
+    (tmp_path / "faults.json").write_text(json.dumps(io._jsonable(shown.to_json())))
+    line = next(r for r in _faults_section(tmp_path).split("<tr>") if '"name">drift</td>' in r)
+    assert html.escape(reason) in line and html.escape(cell) in line and reason not in line
+    assert html.escape(next(iter(row["family_probabilities"]))) in line
+
+
 def _simulated_faults(faults):
     """A reader of simulated record sets without drift: ``normal`` (nominal rig) and one set per
     entry of ``faults`` (name -> (effect, parameter values)); white noise on both channels as
@@ -492,6 +534,23 @@ def test_fit_on_normal_converges_and_predicts_held_out_runs(normal_fit):
     assert nrmse[0] < 0.3 and nrmse[1] < 0.1
 
 
+def test_healthy_moving_position_error_does_not_follow_the_load():
+    # why the model has no drive compliance (module docstring): a spring x_n = x_m - c sgn(u) F_d
+    # would shift the moving position error of both strokes alike, by c times the load swing;
+    # measured: under 0.02 mm between -40 and +40 kgf (784 N), in opposite directions
+    path = _data_file("normal")
+    means: dict[tuple[float, int], list[float]] = {}
+    for m in io.read_cranfield(path, channels=CHANNELS):
+        x_sp = m.experiment.input_matrix(MODEL)[:, 0]
+        step = np.gradient(x_sp)
+        error = m.values[:, 0]
+        for sense in (1, -1):
+            means.setdefault((m.attrs["load_kgf"], sense), []).append(np.nanmean(error[sense * step > 1e-5]))
+    shift = {sense: np.mean(means[(40.0, sense)]) - np.mean(means[(-40.0, sense)]) for sense in (1, -1)}
+    assert max(abs(v) for v in shift.values()) < 3e-5
+    assert shift[1] * shift[-1] < 0.0
+
+
 # --------------------------------------------------------------------------------------
 # fault diagnosis against the healthy fit (the study's runs: ~5 s)
 # --------------------------------------------------------------------------------------
@@ -506,14 +565,29 @@ def diagnosed():
     return study.run_study(read)
 
 
-@pytest.mark.parametrize("record_set", ["normal", "lackLubrication1", "lackLubrication2"])
-def test_fault_diagnosis_names_the_seeded_fault(diagnosed, record_set):
-    assert diagnosed.verdict_of(record_set) == study.EXPECTED[record_set]
-    result = next(d.result for d in diagnosed.diagnoses if d.record_set == record_set)
-    if record_set != "normal":
-        # the shrink is scored on a held-out block that did not select the winner
+def test_fault_diagnosis_finds_no_fault_in_the_healthy_records(diagnosed):
+    assert diagnosed.verdict_of("normal") == study.EXPECTED["normal"] == "none"
+
+
+@pytest.mark.parametrize("record_set", ["lackLubrication1", "lackLubrication2"])
+def test_lubrication_sets_are_a_friction_increase_that_leaves_the_position_error_unexplained(diagnosed, record_set):
+    # measured: lubrication_loss wins the family probability by thousands of ΔBIC over the
+    # runner-up (an added Coulomb drag under positive loads), but the held-out position error
+    # changes too (0.02-0.1 fs band, ~2/3 of its excess power), which no force change can reach
+    # in a model whose drive is rigid (module docstring of ema_uq.models.cranfield); so the set
+    # is named lubrication_loss or left unexplained, never another family
+    d = next(d for d in diagnosed.diagnoses if d.record_set == record_set)
+    result, row = d.result, d.row()
+    best = result.ranking[0]
+    assert best.effect == "lubrication_loss" and best.delta_bic > result.ranking[1].delta_bic + 100
+    assert best.parameters["lubrication_loss_dC_pos"]["estimate"] > 10.0
+    assert next(iter(row["family_probabilities"])) == "lubrication_loss" and row["family_probabilities"]["lubrication_loss"] > 0.99
+    assert diagnosed.verdict_of(record_set) in ("lubrication_loss", "unexplained")
+    if diagnosed.verdict_of(record_set) == "unexplained":
+        assert "lubrication_loss" in row["verdict_reason"]
+        assert any("position_error" in cell for cell in row["where_left"].values())
+    else:
         assert result.gap["shrink"] > 0.5
-        assert result.ranking[0].delta_bic > result.ranking[1].delta_bic
 
 
 @pytest.mark.parametrize("record_set", ["backlash1", "backlash2"])
