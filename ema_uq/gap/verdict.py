@@ -182,6 +182,9 @@ def verdict(th: Thresholds, ranking: list[CandidateScore], significant: bool, st
     if structured or significant or fits_beyond_noise:
         # NaN: nothing reproducible, so surely no fixed effect's
         closes_some = best is not None and best.reproducible_shrink >= th.shrink_min / 2
+        reason = ("no candidate fits" if best is None else
+                  f"the best candidate, {best.family}, fails the effect test (dBIC {best.delta_bic:.0f}, held-out gain "
+                  f"{best.held_out_gain:.0f}, closes {best.reproducible_shrink:.0%} of the reproducible gap)")
         # a gap the state does not predict may be coloured noise or a disturbance, not a mechanism
-        return Verdict("unexplained", None, "low" if closes_some or deterministic is False else "high")
+        return Verdict("unexplained", None, "low" if closes_some or deterministic is False else "high", reason=reason)
     return Verdict("none", None, "high")
