@@ -23,6 +23,10 @@ PROG = "ema-uq"
 #: answers of ``identify --unidentifiable`` (ema_uq.identify.UNIDENTIFIABLE_MODES; not imported
 #: here, the parser builds without loading the numerics)
 UNIDENTIFIABLE_MODES = ("fix", "error")
+#: concepts (ema_uq.models.concepts()) and reference experiments (ema_uq.experiments.EXPERIMENTS)
+#: named here for the same reason: ``--help`` loads neither numpy nor numba (a test keeps them equal)
+CONCEPTS = ("cranfield", "emps", "htls", "lths")
+EXPERIMENT_NAMES = ("deploy-retract", "validation")
 EXIT_OK = 0
 EXIT_ERROR = 2
 
@@ -74,9 +78,7 @@ def _names(values: Sequence[str] | None) -> list[str] | None:
 
 
 def _add_concept(parser: argparse.ArgumentParser) -> None:
-    from .models import concepts
-
-    parser.add_argument("--concept", required=True, choices=concepts(), help="actuator concept")
+    parser.add_argument("--concept", required=True, choices=CONCEPTS, help="actuator concept")
 
 
 def _add_seed(parser: argparse.ArgumentParser, default: int = 0) -> None:
@@ -158,7 +160,6 @@ def _resolve_effects(model, specs: Sequence[str]):
 # simulate
 # --------------------------------------------------------------------------------------
 def _add_simulate(subparsers) -> None:
-    from .experiments import EXPERIMENTS
     from .study import DATA_ROLES
 
     p = subparsers.add_parser(
@@ -170,7 +171,7 @@ def _add_simulate(subparsers) -> None:
     _add_study(p, "experiment, noise, seed, data.set, channels and (rig roles) hidden effects of a data role")
     p.add_argument("--role", choices=tuple(DATA_ROLES), default=None,
                    help="with --study: which of the study's records to write")
-    p.add_argument("--experiment", choices=tuple(EXPERIMENTS), default=None,
+    p.add_argument("--experiment", choices=EXPERIMENT_NAMES, default=None,
                    help="input profile (required without --study)")
     p.add_argument("--noise", type=_fraction, default=0.02, metavar="FRACTION",
                    help="noise standard deviation as a fraction of each channel's RMS (default 0.02)")
@@ -890,12 +891,46 @@ def _run_screenshot(args: argparse.Namespace) -> str:
 
 
 # --------------------------------------------------------------------------------------
+# compile
+# --------------------------------------------------------------------------------------
+def _add_compile(subparsers) -> None:
+    p = subparsers.add_parser(
+        "compile", help="fill the numba cache of every simulation kernel",
+        description="Call every simulation kernel once on a few samples (each concept, integrator "
+                    "and catalogue effect, and the self-check simulator) so later commands load "
+                    "compiled code instead of compiling it. The cache lives beside the package "
+                    "modules, or under NUMBA_CACHE_DIR.")
+    p.add_argument("--concept", nargs="+", choices=CONCEPTS, default=None,
+                   help="only these concepts (default: all)")
+    p.add_argument("--out", metavar="FILE.json", default=None,
+                   help="write the paths compiled and their seconds (a workflow stamp)")
+    p.set_defaults(handler=_run_compile)
+
+
+def _run_compile(args: argparse.Namespace) -> str:
+    import json
+    import time
+
+    from .compile import compile_kernels
+
+    t0 = time.perf_counter()
+    rows = compile_kernels(args.concept)
+    total = time.perf_counter() - t0
+    if args.out:
+        with open(args.out, "w") as fh:
+            json.dump({"seconds": total, "paths": rows}, fh, indent=1)
+    skipped = sum(r["status"] != "ok" for r in rows)
+    return (f"compiled {len(rows) - skipped} kernel paths in {total:.1f} s"
+            + (f" ({skipped} not applicable)" if skipped else "") + (f" -> {args.out}" if args.out else ""))
+
+
+# --------------------------------------------------------------------------------------
 # entry point
 # --------------------------------------------------------------------------------------
 #: Register functions, one per verb, in the order ``--help`` lists them.
 VERBS: tuple[Callable, ...] = (_add_simulate, _add_identify, _add_sample, _add_sensitivity,
                                _add_identifiability, _add_gap, _add_gap_selfcheck, _add_fault_diagnosis, _add_report, _add_check_study,
-                               _add_screenshot)
+                               _add_screenshot, _add_compile)
 
 
 def build_parser() -> argparse.ArgumentParser:
