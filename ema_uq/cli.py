@@ -891,6 +891,64 @@ def _run_screenshot(args: argparse.Namespace) -> str:
 
 
 # --------------------------------------------------------------------------------------
+# sbc
+# --------------------------------------------------------------------------------------
+def _add_sbc(subparsers) -> None:
+    p = subparsers.add_parser(
+        "sbc", help="simulation-based calibration of the posterior: one replicate, or gather them",
+        description="--replicate I: replicate I of the SBC campaign of a study (truth drawn from the prior, "
+                    "data simulated, ML fit, posterior sampled with the study's settings, ranks of the truth "
+                    "among L thinned draws) written as JSON; resumable through --backend. --gather: join "
+                    "replicate files into the rank-uniformity result (chi-square and KS p per parameter) "
+                    "and, with --figure, the rank histograms.")
+    _add_study(p, "concept, data, free parameters and sampler settings of the campaign")
+    p.add_argument("--replicate", type=int, metavar="I", help="replicate index (0, 1, ...)")
+    p.add_argument("--seed", type=_seed, default=0, help="campaign seed (default 0)")
+    p.add_argument("--draws", type=int, default=99, metavar="L", help="thinned posterior draws per replicate (default 99)")
+    p.add_argument("--backend", metavar="FILE.h5", help="sampler backend of the replicate (resumes a killed run)")
+    p.add_argument("--gather", nargs="+", metavar="REPLICATE.json", help="replicate files to join")
+    p.add_argument("--bins", type=int, default=10, help="rank bins of the uniformity tests (default 10)")
+    p.add_argument("--figure", metavar="FILE.png", help="with --gather: rank histograms")
+    p.add_argument("--out", required=True, metavar="FILE.json")
+    p.set_defaults(handler=_run_sbc)
+
+
+def _run_sbc(args: argparse.Namespace) -> str:
+    import json
+
+    from . import io
+    from .bayes import sbc
+
+    out = io.prepare_output(args.out)
+    if args.gather:
+        if args.replicate is not None:
+            raise CLIError("give --replicate or --gather, not both")
+        records = []
+        for path in args.gather:
+            with open(path) as fh:
+                records.append(json.load(fh))
+        result = sbc.gather_replicates(records, n_bins=args.bins)
+        out.write_text(result.to_json())
+        if args.figure:
+            from .report.bayes_figures import sbc_rank_histogram
+
+            sbc_rank_histogram(result).savefig(io.prepare_output(args.figure), dpi=110)
+        return (f"wrote {out}: SBC of {result.n_replicates} replicates x {len(result.names)} parameters, "
+                f"min chi-square p {result.min_p:.3f}, pooled p {result.pooled_uniformity()[1]:.3f}")
+    if args.replicate is None or args.study is None:
+        raise CLIError("give --study and --replicate I (one replicate) or --gather FILES")
+    from .study import load_study
+
+    campaign = sbc.campaign_from_study(load_study(args.study))
+    record = sbc.sbc_replicate(**campaign, index=args.replicate, seed=args.seed, n_draws=args.draws,
+                               backend=io.prepare_output(args.backend) if args.backend else None)
+    out.write_text(json.dumps(record, indent=1))
+    return (f"wrote {out}: SBC replicate {args.replicate}, ranks {record['ranks']} of {args.draws}, "
+            f"{'converged' if record['converged'] else 'NOT converged'} after {record['n_steps']} steps, "
+            f"{record['wall_time_s']:.1f} s")
+
+
+# --------------------------------------------------------------------------------------
 # compile
 # --------------------------------------------------------------------------------------
 def _add_compile(subparsers) -> None:
@@ -930,7 +988,7 @@ def _run_compile(args: argparse.Namespace) -> str:
 #: Register functions, one per verb, in the order ``--help`` lists them.
 VERBS: tuple[Callable, ...] = (_add_simulate, _add_identify, _add_sample, _add_sensitivity,
                                _add_identifiability, _add_gap, _add_gap_selfcheck, _add_fault_diagnosis, _add_report, _add_check_study,
-                               _add_screenshot, _add_compile)
+                               _add_screenshot, _add_sbc, _add_compile)
 
 
 def build_parser() -> argparse.ArgumentParser:
