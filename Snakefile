@@ -19,6 +19,11 @@ from ema_uq.study import DATA_ROLES, load_study, settings_for
 configfile: "config/config.yaml"
 
 
+# `--config 'sbc={study: smoke, replicates: 4}'` passes the numbers as text
+if isinstance(config.get("sbc"), dict):
+    config["sbc"] = {k: int(v) if isinstance(v, str) and v.isdigit() else v for k, v in config["sbc"].items()}
+
+
 validate(config, "config/config.schema.yaml")
 
 
@@ -37,6 +42,11 @@ def _load(name):
 
 
 STUDIES = {name: s for name in config["studies"] if (s := _load(name)) is not None}
+#: stamp of `ema-uq compile`: every rule that simulates waits for it, so no stage pays numba
+#: compilation (its time, not its date, matters: ancient)
+COMPILED = "results/compile.json"
+#: the SBC campaign of the `sbc` target (config/config.yaml, section sbc)
+SBC = config.get("sbc", {})
 REPORT_TEMPLATE = str(resources.files("ema_uq").joinpath("report/templates/report.html"))
 SYNTHETIC = ("htls", "lths")  # concepts whose data the workflow simulates
 
@@ -100,7 +110,23 @@ rule all:
         expand("reports/{study}.html", study=STUDIES),
 
 
+rule compile:
+    output:
+        COMPILED,
+    log:
+        "results/logs/compile.log",
+    benchmark:
+        "results/benchmarks/compile.tsv"
+    resources:
+        mem_mb=2000,
+        runtime=20,
+    shell:
+        "ema-uq compile --out {output} > {log} 2>&1"
+
+
 rule simulate:
+    input:
+        compiled=ancient(COMPILED),
     output:
         "results/{study}/data/{role}.nc",
     params:
@@ -122,6 +148,7 @@ rule simulate:
 
 rule identify:
     input:
+        compiled=ancient(COMPILED),
         estimation=data_file("estimation"),
         validation=data_file("validation"),
     output:
@@ -144,6 +171,7 @@ rule identify:
 
 rule sample:
     input:
+        compiled=ancient(COMPILED),
         estimation=data_file("estimation"),
         fit="results/{study}/fit_gn.json",
     output:
@@ -166,6 +194,8 @@ rule sample:
 
 
 rule sensitivity_chunk:
+    input:
+        compiled=ancient(COMPILED),
     output:
         "results/{study}/sobol/chunk_{chunk}.npz",
     params:
@@ -209,6 +239,7 @@ rule sensitivity:
 
 rule identifiability:
     input:
+        compiled=ancient(COMPILED),
         estimation=data_file("estimation"),
         fit="results/{study}/fit_gn.json",
     output:
@@ -232,6 +263,7 @@ rule identifiability:
 
 rule gap:
     input:
+        compiled=ancient(COMPILED),
         estimation=lambda w: data_file("rig_estimation")(w),
         validation=lambda w: data_file("rig_validation")(w),
     output:
@@ -277,6 +309,7 @@ rule gap_selfcheck:
 rule fault_diagnosis:
     input:
         lambda w: [str(cranfield_file(f, study(w))) for f in CRANFIELD_FILES],
+        compiled=ancient(COMPILED),
     output:
         "results/{study}/faults.json",
     params:
@@ -310,3 +343,56 @@ rule report:
         runtime=10,
     shell:
         "ema-uq report --study {input.study} --results results/{wildcards.study} --out {output} > {log} 2>&1"
+
+
+# --- simulation-based calibration (target `sbc`, not part of `all`) ----------------------------
+# One job per replicate (its own resources; resumable: a replicate's sampler backend keeps its
+# chains), gathered by a cheap rule into the rank-uniformity figures. The campaign is the
+# config's sbc section: `snakemake sbc` runs the production campaign of the HT/LS default study;
+# `snakemake sbc --config 'sbc={study: smoke, replicates: 4}'` a few replicates of another study.
+rule sbc:
+    input:
+        f"results/sbc/{SBC.get('study', 'htls')}/sbc.json",
+
+
+rule sbc_replicate:
+    input:
+        compiled=ancient(COMPILED),
+        study="studies/{study}.yaml",
+    output:
+        "results/sbc/{study}/replicate_{replicate}.json",
+    params:
+        seed=SBC.get("seed", 0),
+        draws=SBC.get("draws", 99),
+    log:
+        "results/sbc/{study}/logs/replicate_{replicate}.log",
+    benchmark:
+        "results/sbc/{study}/benchmarks/replicate_{replicate}.tsv"
+    wildcard_constraints:
+        replicate="[0-9]+",
+    threads: SBC.get("threads", 1)
+    resources:
+        mem_mb=SBC.get("mem_mb", 3000),
+        runtime=SBC.get("runtime", 240),
+    shell:
+        "NUMBA_NUM_THREADS={threads} ema-uq sbc --study {input.study} --replicate {wildcards.replicate} --seed {params.seed} "
+        "--draws {params.draws} --backend results/sbc/{wildcards.study}/replicate_{wildcards.replicate}.h5 "
+        "--out {output} > {log} 2>&1"
+
+
+rule sbc_gather:
+    input:
+        lambda w: expand("results/sbc/{study}/replicate_{replicate}.json", study=w.study,
+                         replicate=range(SBC.get("replicates", 100))),
+    output:
+        result="results/sbc/{study}/sbc.json",
+        figure="results/sbc/{study}/sbc_ranks.png",
+    params:
+        bins=SBC.get("bins", 10),
+    log:
+        "results/sbc/{study}/logs/gather.log",
+    resources:
+        mem_mb=1000,
+        runtime=5,
+    shell:
+        "ema-uq sbc --gather {input} --bins {params.bins} --out {output.result} --figure {output.figure} > {log} 2>&1"
