@@ -5,14 +5,16 @@
 #   pip install -e ".[slurm]"
 # Usage:
 #   cluster/start-slurm.sh            # writes the configuration, starts the daemons
-#   export SLURM_CONF=<state dir>/etc/slurm.conf   (printed at the end)
 #   cluster/start-slurm.sh stop       # stops the daemons it started
 #
 # Daemons: munged (authentication), mariadbd + slurmdbd (accounting, so `sacct` lists every
 # job), slurmctld (controller) and slurmd (this host as the only compute node, all its CPUs and
 # memory in partition `main`). Everything - configuration, state, logs, the database - lives
-# under EMA_UQ_SLURM_DIR (default: $TMPDIR or /tmp, subfolder ema-uq-slurm); nothing under
-# /etc is changed. Processes are tracked per job (proctrack/linuxproc), so the cluster runs in a
+# under EMA_UQ_SLURM_DIR (default: $TMPDIR or /tmp, subfolder ema-uq-slurm). The one change under
+# /etc: /etc/slurm/slurm.conf becomes a link to the written configuration, because the Snakemake
+# SLURM executor clears every SLURM_* variable (SLURM_CONF too) before it calls sbatch, so the
+# jobs' srun reads the compiled-in default path; an existing slurm.conf that is not such a link
+# is left alone and the script stops. Processes are tracked per job (proctrack/linuxproc), so the cluster runs in a
 # container without cgroups.
 set -euo pipefail
 
@@ -113,6 +115,7 @@ AccountingStorageType=accounting_storage/slurmdbd
 AccountingStorageHost=localhost
 AccountingStoragePort=$((PORT_BASE + 2))
 AccountingStorageEnforce=associations
+AccountingStoreFlags=job_comment
 JobCompType=jobcomp/filetxt
 JobCompLoc=$STATE/log/jobcomp.txt
 MinJobAge=300
@@ -136,6 +139,11 @@ CONF
 chown slurm:slurm "$STATE/etc/slurmdbd.conf"
 chmod 600 "$STATE/etc/slurmdbd.conf"
 export SLURM_CONF="$CONF"
+if [[ -e /etc/slurm/slurm.conf && ! -L /etc/slurm/slurm.conf ]]; then
+    echo "start-slurm: error: /etc/slurm/slurm.conf exists and is not a link written here; move it away first" >&2
+    exit 2
+fi
+mkdir -p /etc/slurm && ln -sfn "$CONF" /etc/slurm/slurm.conf
 
 # --- daemons ------------------------------------------------------------------------------
 if ! pidfile_alive "$STATE/run/slurmdbd.pid"; then
@@ -160,4 +168,4 @@ if ! pidfile_alive "$STATE/run/slurmd.pid"; then
 fi
 scontrol update NodeName="$HOST" State=RESUME >/dev/null 2>&1 || true
 sinfo >&2
-echo "export SLURM_CONF=$CONF"
+echo "# /etc/slurm/slurm.conf -> $CONF; the SLURM commands need no SLURM_CONF"
