@@ -19,9 +19,18 @@ from ema_uq.study import DATA_ROLES, load_study, settings_for
 configfile: "config/config.yaml"
 
 
-# `--config 'sbc={study: smoke, replicates: 4}'` passes the numbers as text
+def _number(text):
+    """`--config 'sbc={study: smoke, replicates: 4}'` passes the numbers as text."""
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except (TypeError, ValueError):
+            pass
+    return text
+
+
 if isinstance(config.get("sbc"), dict):
-    config["sbc"] = {k: int(v) if isinstance(v, str) and v.isdigit() else v for k, v in config["sbc"].items()}
+    config["sbc"] = {k: v if k == "study" else _number(v) for k, v in config["sbc"].items()}
 
 
 validate(config, "config/config.schema.yaml")
@@ -364,6 +373,7 @@ rule sbc_replicate:
     params:
         seed=SBC.get("seed", 0),
         draws=SBC.get("draws", 99),
+        prior_spread=SBC.get("prior_spread", 0.1),
     log:
         "results/sbc/{study}/logs/replicate_{replicate}.log",
     benchmark:
@@ -376,7 +386,7 @@ rule sbc_replicate:
         runtime=SBC.get("runtime", 240),
     shell:
         "NUMBA_NUM_THREADS={threads} ema-uq sbc --study {input.study} --replicate {wildcards.replicate} --seed {params.seed} "
-        "--draws {params.draws} --backend results/sbc/{wildcards.study}/replicate_{wildcards.replicate}.h5 "
+        "--draws {params.draws} --prior-spread {params.prior_spread} --backend results/sbc/{wildcards.study}/replicate_{wildcards.replicate}.h5 "
         "--out {output} > {log} 2>&1"
 
 

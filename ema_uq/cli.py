@@ -905,6 +905,8 @@ def _add_sbc(subparsers) -> None:
     p.add_argument("--replicate", type=int, metavar="I", help="replicate index (0, 1, ...)")
     p.add_argument("--seed", type=_seed, default=0, help="campaign seed (default 0)")
     p.add_argument("--draws", type=int, default=99, metavar="L", help="thinned posterior draws per replicate (default 99)")
+    p.add_argument("--prior-spread", type=float, default=0.1, metavar="S",
+                   help="priors of the free parameters without a rig value: ln(theta) ~ N(ln nominal, S) (default 0.1)")
     p.add_argument("--backend", metavar="FILE.h5", help="sampler backend of the replicate (resumes a killed run)")
     p.add_argument("--gather", nargs="+", metavar="REPLICATE.json", help="replicate files to join")
     p.add_argument("--bins", type=int, default=10, help="rank bins of the uniformity tests (default 10)")
@@ -939,7 +941,7 @@ def _run_sbc(args: argparse.Namespace) -> str:
         raise CLIError("give --study and --replicate I (one replicate) or --gather FILES")
     from .study import load_study
 
-    campaign = sbc.campaign_from_study(load_study(args.study))
+    campaign = sbc.campaign_from_study(load_study(args.study), prior_spread=args.prior_spread)
     record = sbc.sbc_replicate(**campaign, index=args.replicate, seed=args.seed, n_draws=args.draws,
                                backend=io.prepare_output(args.backend) if args.backend else None)
     out.write_text(json.dumps(record, indent=1))

@@ -335,27 +335,41 @@ def ks_uniformity(ranks: np.ndarray, n_draws: int) -> float:
     return float(stats.kstest((np.ravel(ranks) + 0.5) / (n_draws + 1), "uniform").pvalue)
 
 
-def campaign_from_study(study: Mapping) -> dict:
+#: default spread of the campaign priors: ln Θ_j ~ N(ln Θ_j,nominal, 0.1), about ±10 %
+PRIOR_SPREAD = 0.1
+
+
+def campaign_from_study(study: Mapping, prior_spread: float = PRIOR_SPREAD) -> dict:
     """Keyword arguments of :func:`sbc_replicate` for a study: its concept, estimation
     experiment, noise fraction, channels and ``data.set`` truth, every parameter free that its
-    ``identify.fix`` does not fix, default priors (flat on the bounds, rig normals) and the
-    study's sampler settings (no predictive draws)."""
-    from ..experiments import get_experiment
-    from ..study import settings_for
+    ``identify.fix`` does not fix, and the study's sampler settings (no predictive draws).
 
+    Priors: SBC draws the truth from them, so they must be proper. A parameter with a rig
+    pseudo-measurement keeps its rig normal prior; every other free parameter (flat on a
+    half-infinite range by default: improper) gets ln Θ ~ N(ln Θ_nominal, ``prior_spread``)
+    (a normal of sd ``prior_spread`` when its nominal value is not positive)."""
+    from ..experiments import get_experiment
+    from ..study import section, settings_for
+
+    if not (math.isfinite(prior_spread) and prior_spread > 0):
+        raise BayesError(f"prior spread {prior_spread} must be a positive number (0.1: about 10 %)")
     model = get_model(study["concept"])
-    data = study.get("data") or {}
-    s = settings_for(study, "sample")
-    fix = list(settings_for(study, "identify").get("fix") or [])
+    data = section(dict(study), "data")
+    s = settings_for(dict(study), "sample")
+    fix = list(settings_for(dict(study), "identify").get("fix") or [])
     overrides = {k: v for k, v in (s.get("set") or {}).items() if k in model.parameters.names}
     parameters = model.parameters.with_nominal(overrides).freeing_only(
         [n for n in model.parameters.names if n not in fix])
+    priors = {}
+    for p in parameters:
+        if p.free and p.prior_std is None:
+            priors[p.name] = (("lognormal", math.log(p.nominal), prior_spread) if p.nominal > 0
+                              else ("normal", p.nominal, prior_spread))
     settings = SamplerSettings(n_walkers=s["walkers"], n_ensembles=s["chains"], max_steps=s["max_steps"],
                                check_every=s["check_every"], moves=s["moves"], defensive_weight=s["defensive"],
                                integrator=s["integrator"], n_predictive=0)
-    return {"model": model, "experiment": get_experiment(data.get("estimation", "deploy-retract")),
-            "parameters": parameters, "priors": {}, "channels": data.get("channels"),
-            "noise": float(data.get("noise", 0.02)), "settings": settings}
+    return {"model": model, "experiment": get_experiment(data["estimation"]), "parameters": parameters,
+            "priors": priors, "channels": data.get("channels"), "noise": float(data["noise"]), "settings": settings}
 
 
 def _replicate(model, experiment, parameters, priors, prior_list, channels, noise, settings, n_draws, rng,
