@@ -21,6 +21,8 @@ configfile: "config/config.yaml"
 
 def _number(text):
     """`--config 'sbc={study: smoke, replicates: 4}'` passes the numbers as text."""
+    if not isinstance(text, str):
+        return text
     for kind in (int, float):
         try:
             return kind(text)
@@ -122,6 +124,10 @@ rule all:
 rule compile:
     output:
         COMPILED,
+    params:
+        # the concepts of the configured studies and of the SBC campaign
+        concepts=lambda w: " ".join(sorted({s["concept"] for s in STUDIES.values()}
+                                           | {load_study(f"studies/{SBC.get('study', 'htls')}.yaml")["concept"]})),
     log:
         "results/logs/compile.log",
     benchmark:
@@ -130,7 +136,7 @@ rule compile:
         mem_mb=2000,
         runtime=20,
     shell:
-        "ema-uq compile --out {output} > {log} 2>&1"
+        "ema-uq compile --concept {params.concepts} --out {output} > {log} 2>&1"
 
 
 rule simulate:

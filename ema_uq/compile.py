@@ -46,12 +46,12 @@ def _paths(concept: str):
                    run(augmented, th, augmented.integrator, share))
 
 
-def _variant_paths():
+def _variant_paths(concepts):
     from .experiments import deploy_retract
     from .gap.variants import CONCEPTS, simulate_variant
 
     experiment = deploy_retract().slice(0, N_SAMPLES)
-    for concept in CONCEPTS:
+    for concept in (c for c in CONCEPTS if c in concepts):
         yield f"{concept} self-check simulator", (lambda c=concept: simulate_variant(c, experiment))
 
 
@@ -70,7 +70,7 @@ def compile_kernels(concepts=None, progress: Callable[[str], None] | None = None
     def paths():
         for concept in names:
             yield from _paths(concept)
-        yield from _variant_paths()
+        yield from _variant_paths(names)
 
     for label, thunk in paths():
         t0 = time.perf_counter()
