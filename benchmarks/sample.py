@@ -29,7 +29,8 @@ Before/after: ``--compare BASE_TREE`` runs the first move kind for a fixed ``--s
 seed, so both sides sample nearly the same chain and the ESS agree) alternately with the
 package of BASE_TREE (another checkout, e.g. the base commit) and with this one, ``--rounds``
 times each, in fresh processes; it prints per-parameter bulk ESS/s side by side (best wall
-time of the rounds: the machine may be shared) and, per batch of walkers, the seconds spent
+time of the rounds: the machine may be shared; per CPU-second too, which the load disturbs less)
+and, per batch of walkers, the seconds spent
 simulating and in the likelihood's linear algebra (covariance and log det R).
 
        python benchmarks/sample.py --compare /path/to/base/checkout [--steps 400] [--rounds 2]
@@ -167,10 +168,12 @@ def _fixed_run(args) -> None:
         sim.append(t1 - t0)
         lin.append(t2 - t1)
     fixed = bayes.SamplerSettings(**{**settings.__dict__, "max_steps": args.steps, "check_every": args.steps})
+    cpu0 = time.process_time()
     res = bayes.sample(problem, fit, settings=fixed, seed=args.seed, predictive=False)
+    cpu = time.process_time() - cpu0
     table = res.summary()
     Path(args.json).write_text(json.dumps({
-        "names": list(table.index), "ess_bulk": table["ess_bulk"].tolist(), "wall": res.wall_time_s,
+        "names": list(table.index), "ess_bulk": table["ess_bulk"].tolist(), "wall": res.wall_time_s, "cpu": cpu,
         "steps": res.n_steps, "batch": batch, "simulate_s": min(sim), "likelihood_s": min(lin),
         "simulations": res.n_simulations}))
 
@@ -194,17 +197,22 @@ def _compare(args) -> None:
           f"{args.rounds} interleaved runs per side (shared machine: wall times carry its load)")
     print(f"{'':<14}{'before':>12}{'after':>12}")
     print(f"{'wall [s]':<14}{b['wall']:>12.1f}{a['wall']:>12.1f}")
+    print(f"{'CPU [s]':<14}{b['cpu']:>12.1f}{a['cpu']:>12.1f}")
     print(f"{'sims/s':<14}{b['simulations'] / b['wall']:>12.0f}{a['simulations'] / a['wall']:>12.0f}")
     print(f"per batch of {a['batch']} walkers: simulation {b['simulate_s'] * 1e3:.1f} -> {a['simulate_s'] * 1e3:.1f} ms, "
           f"likelihood linear algebra {b['likelihood_s'] * 1e3:.2f} -> {a['likelihood_s'] * 1e3:.2f} ms "
           f"({b['likelihood_s'] / a['likelihood_s']:.1f}x)")
-    print(f"\n{'parameter':<10}{'bulk ESS':>10}{'':>10}{'bulk ESS/s':>12}{'':>10}")
-    print(f"{'':<10}{'before':>10}{'after':>10}{'before':>12}{'after':>10}")
+    print(f"\n{'parameter':<10}{'bulk ESS':>10}{'':>10}{'bulk ESS/s (wall)':>20}{'':>10}"
+          f"{'bulk ESS/CPU-s':>18}{'':>10}")
+    print(f"{'':<10}{'before':>10}{'after':>10}{'before':>20}{'after':>10}{'before':>18}{'after':>10}")
+
+    def line(name, eb, ea):
+        return (f"{name:<10}{eb:>10.0f}{ea:>10.0f}{eb / b['wall']:>20.2f}{ea / a['wall']:>10.2f}"
+                f"{eb / b['cpu']:>18.2f}{ea / a['cpu']:>10.2f}")
+
     for j, name in enumerate(a["names"]):
-        print(f"{name:<10}{b['ess_bulk'][j]:>10.0f}{a['ess_bulk'][j]:>10.0f}"
-              f"{b['ess_bulk'][j] / b['wall']:>12.2f}{a['ess_bulk'][j] / a['wall']:>10.2f}")
-    print(f"{'min':<10}{min(b['ess_bulk']):>10.0f}{min(a['ess_bulk']):>10.0f}"
-          f"{min(b['ess_bulk']) / b['wall']:>12.2f}{min(a['ess_bulk']) / a['wall']:>10.2f}")
+        print(line(name, b["ess_bulk"][j], a["ess_bulk"][j]))
+    print(line("min", min(b["ess_bulk"]), min(a["ess_bulk"])))
 
 
 def _time_per_set(problem, fit, batch: int) -> float:
