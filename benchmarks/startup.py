@@ -26,6 +26,10 @@ from pathlib import Path
 
 
 def _run(tree: Path, args: list[str], env: dict | None = None, cwd: Path | None = None) -> float:
+    """Seconds of one fresh process with the package of ``tree``. It runs in a neutral folder:
+    ``python -m`` puts the working folder ahead of PYTHONPATH, so started inside a checkout it
+    would import that checkout instead of ``tree``."""
+    cwd = cwd or Path(tempfile.gettempdir())
     t0 = time.perf_counter()
     subprocess.run([sys.executable, *args], env={**os.environ, "PYTHONPATH": str(tree), **(env or {})},
                    cwd=cwd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
