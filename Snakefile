@@ -19,6 +19,22 @@ from ema_uq.study import DATA_ROLES, load_study, settings_for
 configfile: "config/config.yaml"
 
 
+def _number(text):
+    """`--config 'sbc={study: smoke, replicates: 4}'` passes the numbers as text."""
+    if not isinstance(text, str):
+        return text
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except (TypeError, ValueError):
+            pass
+    return text
+
+
+if isinstance(config.get("sbc"), dict):
+    config["sbc"] = {k: v if k == "study" else _number(v) for k, v in config["sbc"].items()}
+
+
 validate(config, "config/config.schema.yaml")
 
 
@@ -37,6 +53,11 @@ def _load(name):
 
 
 STUDIES = {name: s for name in config["studies"] if (s := _load(name)) is not None}
+#: stamp of `ema-uq compile`: every rule that simulates waits for it, so no stage pays numba
+#: compilation (its time, not its date, matters: ancient)
+COMPILED = "results/compile.json"
+#: the SBC campaign of the `sbc` target (config/config.yaml, section sbc)
+SBC = config.get("sbc", {})
 REPORT_TEMPLATE = str(resources.files("ema_uq").joinpath("report/templates/report.html"))
 SYNTHETIC = ("htls", "lths")  # concepts whose data the workflow simulates
 
@@ -100,7 +121,27 @@ rule all:
         expand("reports/{study}.html", study=STUDIES),
 
 
+rule compile:
+    output:
+        COMPILED,
+    params:
+        # the concepts of the configured studies and of the SBC campaign
+        concepts=lambda w: " ".join(sorted({s["concept"] for s in STUDIES.values()}
+                                           | {load_study(f"studies/{SBC.get('study', 'htls')}.yaml")["concept"]})),
+    log:
+        "results/logs/compile.log",
+    benchmark:
+        "results/benchmarks/compile.tsv"
+    resources:
+        mem_mb=2000,
+        runtime=20,
+    shell:
+        "ema-uq compile --concept {params.concepts} --out {output} > {log} 2>&1"
+
+
 rule simulate:
+    input:
+        compiled=ancient(COMPILED),
     output:
         "results/{study}/data/{role}.nc",
     params:
@@ -122,6 +163,7 @@ rule simulate:
 
 rule identify:
     input:
+        compiled=ancient(COMPILED),
         estimation=data_file("estimation"),
         validation=data_file("validation"),
     output:
@@ -144,6 +186,7 @@ rule identify:
 
 rule sample:
     input:
+        compiled=ancient(COMPILED),
         estimation=data_file("estimation"),
         fit="results/{study}/fit_gn.json",
     output:
@@ -166,6 +209,8 @@ rule sample:
 
 
 rule sensitivity_chunk:
+    input:
+        compiled=ancient(COMPILED),
     output:
         "results/{study}/sobol/chunk_{chunk}.npz",
     params:
@@ -209,6 +254,7 @@ rule sensitivity:
 
 rule identifiability:
     input:
+        compiled=ancient(COMPILED),
         estimation=data_file("estimation"),
         fit="results/{study}/fit_gn.json",
     output:
@@ -232,6 +278,7 @@ rule identifiability:
 
 rule gap:
     input:
+        compiled=ancient(COMPILED),
         estimation=lambda w: data_file("rig_estimation")(w),
         validation=lambda w: data_file("rig_validation")(w),
     output:
@@ -304,6 +351,7 @@ rule gap_selfcheck:
 rule fault_diagnosis:
     input:
         lambda w: [str(cranfield_file(f, study(w))) for f in CRANFIELD_FILES],
+        compiled=ancient(COMPILED),
     output:
         "results/{study}/faults.json",
     params:
@@ -337,3 +385,57 @@ rule report:
         runtime=10,
     shell:
         "ema-uq report --study {input.study} --results results/{wildcards.study} --out {output} > {log} 2>&1"
+
+
+# --- simulation-based calibration (target `sbc`, not part of `all`) ----------------------------
+# One job per replicate (its own resources; resumable: a replicate's sampler backend keeps its
+# chains), gathered by a cheap rule into the rank-uniformity figures. The campaign is the
+# config's sbc section: `snakemake sbc` runs the production campaign of the HT/LS default study;
+# `snakemake sbc --config 'sbc={study: smoke, replicates: 4}'` a few replicates of another study.
+rule sbc:
+    input:
+        f"results/sbc/{SBC.get('study', 'htls')}/sbc.json",
+
+
+rule sbc_replicate:
+    input:
+        compiled=ancient(COMPILED),
+        study="studies/{study}.yaml",
+    output:
+        "results/sbc/{study}/replicate_{replicate}.json",
+    params:
+        seed=SBC.get("seed", 0),
+        draws=SBC.get("draws", 99),
+        prior_spread=SBC.get("prior_spread", 0.1),
+    log:
+        "results/sbc/{study}/logs/replicate_{replicate}.log",
+    benchmark:
+        "results/sbc/{study}/benchmarks/replicate_{replicate}.tsv"
+    wildcard_constraints:
+        replicate="[0-9]+",
+    threads: SBC.get("threads", 1)
+    resources:
+        mem_mb=SBC.get("mem_mb", 3000),
+        runtime=SBC.get("runtime", 240),
+    shell:
+        "NUMBA_NUM_THREADS={threads} ema-uq sbc --study {input.study} --replicate {wildcards.replicate} --seed {params.seed} "
+        "--draws {params.draws} --prior-spread {params.prior_spread} --backend results/sbc/{wildcards.study}/replicate_{wildcards.replicate}.h5 "
+        "--out {output} > {log} 2>&1"
+
+
+rule sbc_gather:
+    input:
+        lambda w: expand("results/sbc/{study}/replicate_{replicate}.json", study=w.study,
+                         replicate=range(SBC.get("replicates", 100))),
+    output:
+        result="results/sbc/{study}/sbc.json",
+        figure="results/sbc/{study}/sbc_ranks.png",
+    params:
+        bins=SBC.get("bins", 10),
+    log:
+        "results/sbc/{study}/logs/gather.log",
+    resources:
+        mem_mb=1000,
+        runtime=5,
+    shell:
+        "ema-uq sbc --gather {input} --bins {params.bins} --out {output.result} --figure {output.figure} > {log} 2>&1"

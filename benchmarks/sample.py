@@ -24,10 +24,24 @@ rule and ESS count only the steps after it.
 
 Usage: python benchmarks/sample.py [--moves independence de stretch] [--budget S]
        [--peer-steps N] [--seed N]
+
+Before/after: ``--compare BASE_TREE`` runs the first move kind for a fixed ``--steps`` (same
+seed, so both sides sample nearly the same chain and the ESS agree) alternately with the
+package of BASE_TREE (another checkout, e.g. the base commit) and with this one, ``--rounds``
+times each, in fresh processes; it prints per-parameter bulk ESS/s side by side (best wall
+time of the rounds: the machine may be shared; per CPU-second too, which the load disturbs less)
+and, per batch of walkers, the seconds spent
+simulating and in the likelihood's linear algebra (covariance and log det R).
+
+       python benchmarks/sample.py --compare /path/to/base/checkout [--steps 400] [--rounds 2]
 """
 from __future__ import annotations
 
 import argparse
+import json
+import os
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -49,7 +63,15 @@ def main() -> None:
     ap.add_argument("--budget", type=float, default=270.0, help="seconds per move kind (default 270)")
     ap.add_argument("--peer-steps", type=int, default=50, help="steps of the one-at-a-time run (default 50)")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--compare", metavar="BASE_TREE", help="before/after against the package in BASE_TREE")
+    ap.add_argument("--steps", type=int, default=400, help="with --compare: steps per run (default 400)")
+    ap.add_argument("--rounds", type=int, default=2, help="with --compare: runs per side, interleaved (default 2)")
+    ap.add_argument("--json", help=argparse.SUPPRESS)          # one fixed-step run, figures to this file
     args = ap.parse_args()
+    if args.compare:
+        return _compare(args)
+    if args.json:
+        return _fixed_run(args)
 
     model = get_model("htls")
     data = synthesize("htls", deploy_retract(), noise=0.02, seed=1)
@@ -115,6 +137,82 @@ def main() -> None:
     table["sd/crb"] = table["sd"] / table["crb_sd"]
     print(table[["mean", "sd", "crb_sd", "sd/crb", "ess_bulk", "ess_tail", "r_hat"]].to_string(
         float_format=lambda v: f"{v:.4g}"))
+
+
+def _problem():
+    model = get_model("htls")
+    data = synthesize("htls", deploy_retract(), noise=0.02, seed=1)
+    problem = FitProblem([data])
+    return problem, estimate(problem, start=model.parameters.nominal)
+
+
+def _fixed_run(args) -> None:
+    """One run of ``args.steps`` steps of the first move kind (stopping rule off); figures to
+    ``args.json``: per-parameter bulk ESS, sampling wall time, and the split of one batched
+    posterior evaluation into simulation and likelihood linear algebra (best of 5)."""
+    problem, fit = _problem()
+    settings = bayes.SamplerSettings(moves=args.moves[0], n_predictive=0)
+    n_free = len(fit.free_names)
+    batch = settings.walkers_for(n_free)
+    _time_per_set(problem, fit, batch)                     # compiles every kernel the run uses
+    posterior = bayes.LogPosterior(problem, bayes.build_priors(problem), fit.estimate)
+    free = np.repeat(fit.estimate[problem.free_index][None], batch, axis=0)
+    thetas = problem.full_vectors(free, fit.estimate)
+    sim, lin = [], []
+    for _ in range(5):
+        t0 = time.perf_counter()
+        e = problem.residuals(thetas)
+        t1 = time.perf_counter()
+        posterior.log_likelihood_of_residuals(e)
+        t2 = time.perf_counter()
+        sim.append(t1 - t0)
+        lin.append(t2 - t1)
+    fixed = bayes.SamplerSettings(**{**settings.__dict__, "max_steps": args.steps, "check_every": args.steps})
+    cpu0 = time.process_time()
+    res = bayes.sample(problem, fit, settings=fixed, seed=args.seed, predictive=False)
+    cpu = time.process_time() - cpu0
+    table = res.summary()
+    Path(args.json).write_text(json.dumps({
+        "names": list(table.index), "ess_bulk": table["ess_bulk"].tolist(), "wall": res.wall_time_s, "cpu": cpu,
+        "steps": res.n_steps, "batch": batch, "simulate_s": min(sim), "likelihood_s": min(lin),
+        "simulations": res.n_simulations}))
+
+
+def _compare(args) -> None:
+    here = Path(__file__).resolve().parents[1]
+    trees = {"before": Path(args.compare).resolve(), "after": here}
+    runs = {k: [] for k in trees}
+    with tempfile.TemporaryDirectory() as tmp:
+        for r in range(args.rounds):
+            for label, tree in trees.items():
+                out = Path(tmp) / f"{label}_{r}.json"
+                env = {**os.environ, "PYTHONPATH": str(tree)}
+                subprocess.run([sys.executable, __file__, "--moves", args.moves[0], "--steps", str(args.steps),
+                                "--seed", str(args.seed), "--json", str(out)], env=env, check=True)
+                runs[label].append(json.loads(out.read_text()))
+                print(f"round {r + 1} {label}: {runs[label][-1]['wall']:.1f} s for {args.steps} steps", flush=True)
+    best = {k: min(v, key=lambda d: d["wall"]) for k, v in runs.items()}
+    b, a = best["before"], best["after"]
+    print(f"\nHT/LS default posterior, {args.moves[0]} moves, {args.steps} steps, seed {args.seed}; best of "
+          f"{args.rounds} interleaved runs per side (shared machine: wall times carry its load)")
+    print(f"{'':<14}{'before':>12}{'after':>12}")
+    print(f"{'wall [s]':<14}{b['wall']:>12.1f}{a['wall']:>12.1f}")
+    print(f"{'CPU [s]':<14}{b['cpu']:>12.1f}{a['cpu']:>12.1f}")
+    print(f"{'sims/s':<14}{b['simulations'] / b['wall']:>12.0f}{a['simulations'] / a['wall']:>12.0f}")
+    print(f"per batch of {a['batch']} walkers: simulation {b['simulate_s'] * 1e3:.1f} -> {a['simulate_s'] * 1e3:.1f} ms, "
+          f"likelihood linear algebra {b['likelihood_s'] * 1e3:.2f} -> {a['likelihood_s'] * 1e3:.2f} ms "
+          f"({b['likelihood_s'] / a['likelihood_s']:.1f}x)")
+    print(f"\n{'parameter':<10}{'bulk ESS':>10}{'':>10}{'bulk ESS/s (wall)':>20}{'':>10}"
+          f"{'bulk ESS/CPU-s':>18}{'':>10}")
+    print(f"{'':<10}{'before':>10}{'after':>10}{'before':>20}{'after':>10}{'before':>18}{'after':>10}")
+
+    def line(name, eb, ea):
+        return (f"{name:<10}{eb:>10.0f}{ea:>10.0f}{eb / b['wall']:>20.2f}{ea / a['wall']:>10.2f}"
+                f"{eb / b['cpu']:>18.2f}{ea / a['cpu']:>10.2f}")
+
+    for j, name in enumerate(a["names"]):
+        print(line(name, b["ess_bulk"][j], a["ess_bulk"][j]))
+    print(line("min", min(b["ess_bulk"]), min(a["ess_bulk"])))
 
 
 def _time_per_set(problem, fit, batch: int) -> float:

@@ -27,6 +27,10 @@ PROG = "ema-uq"
 #: answers of ``identify --unidentifiable`` (ema_uq.identify.UNIDENTIFIABLE_MODES; not imported
 #: here, the parser builds without loading the numerics)
 UNIDENTIFIABLE_MODES = ("fix", "error")
+#: concepts (ema_uq.models.concepts()) and reference experiments (ema_uq.experiments.EXPERIMENTS)
+#: named here for the same reason: ``--help`` loads neither numpy nor numba (a test keeps them equal)
+CONCEPTS = ("cranfield", "emps", "htls", "lths")
+EXPERIMENT_NAMES = ("deploy-retract", "validation")
 EXIT_OK = 0
 EXIT_ERROR = 2
 EXIT_BUG = 3
@@ -81,9 +85,7 @@ def _names(values: Sequence[str] | None) -> list[str] | None:
 
 
 def _add_concept(parser: argparse.ArgumentParser) -> None:
-    from .models import concepts
-
-    parser.add_argument("--concept", required=True, choices=concepts(), help="actuator concept")
+    parser.add_argument("--concept", required=True, choices=CONCEPTS, help="actuator concept")
 
 
 def _add_seed(parser: argparse.ArgumentParser, default: int = 0) -> None:
@@ -146,7 +148,6 @@ def _resolve_effects(model, specs: Sequence[str]):
 # simulate
 # --------------------------------------------------------------------------------------
 def _add_simulate(subparsers) -> None:
-    from .experiments import EXPERIMENTS
     from .study import DATA_ROLES
 
     p = subparsers.add_parser(
@@ -158,7 +159,7 @@ def _add_simulate(subparsers) -> None:
     _add_study(p, "experiment, noise, seed, data.set, channels and (rig roles) hidden effects of a data role")
     p.add_argument("--role", choices=tuple(DATA_ROLES), default=None,
                    help="with --study: which of the study's records to write")
-    p.add_argument("--experiment", choices=tuple(EXPERIMENTS), default=None,
+    p.add_argument("--experiment", choices=EXPERIMENT_NAMES, default=None,
                    help="input profile (required without --study)")
     p.add_argument("--noise", type=_fraction, default=0.02, metavar="FRACTION",
                    help="noise standard deviation as a fraction of each channel's RMS (default 0.02)")
@@ -912,12 +913,106 @@ def _run_screenshot(args: argparse.Namespace) -> str:
 
 
 # --------------------------------------------------------------------------------------
+# sbc
+# --------------------------------------------------------------------------------------
+def _add_sbc(subparsers) -> None:
+    p = subparsers.add_parser(
+        "sbc", help="simulation-based calibration of the posterior: one replicate, or gather them",
+        description="--replicate I: replicate I of the SBC campaign of a study (truth drawn from the prior, "
+                    "data simulated, ML fit, posterior sampled with the study's settings, ranks of the truth "
+                    "among L thinned draws) written as JSON; resumable through --backend. --gather: join "
+                    "replicate files into the rank-uniformity result (chi-square and KS p per parameter) "
+                    "and, with --figure, the rank histograms.")
+    _add_study(p, "concept, data, free parameters and sampler settings of the campaign")
+    p.add_argument("--replicate", type=int, metavar="I", help="replicate index (0, 1, ...)")
+    p.add_argument("--seed", type=_seed, default=0, help="campaign seed (default 0)")
+    p.add_argument("--draws", type=int, default=99, metavar="L", help="thinned posterior draws per replicate (default 99)")
+    p.add_argument("--prior-spread", type=float, default=0.1, metavar="S",
+                   help="priors of the free parameters without a rig value: ln(theta) ~ N(ln nominal, S) (default 0.1)")
+    p.add_argument("--backend", metavar="FILE.h5", help="sampler backend of the replicate (resumes a killed run)")
+    p.add_argument("--gather", nargs="+", metavar="REPLICATE.json", help="replicate files to join")
+    p.add_argument("--bins", type=int, default=10, help="rank bins of the uniformity tests (default 10)")
+    p.add_argument("--figure", metavar="FILE.png", help="with --gather: rank histograms")
+    p.add_argument("--out", required=True, metavar="FILE.json")
+    p.set_defaults(handler=_run_sbc)
+
+
+def _run_sbc(args: argparse.Namespace) -> str:
+    import json
+
+    from . import io
+    from .bayes import sbc
+
+    out = io.prepare_output(args.out)
+    if args.gather:
+        if args.replicate is not None:
+            raise CLIError("give --replicate or --gather, not both")
+        records = []
+        for path in args.gather:
+            with open(path) as fh:
+                records.append(json.load(fh))
+        result = sbc.gather_replicates(records, n_bins=args.bins)
+        out.write_text(result.to_json())
+        if args.figure:
+            from .report.bayes_figures import sbc_rank_histogram
+
+            sbc_rank_histogram(result).savefig(io.prepare_output(args.figure), dpi=110)
+        return (f"wrote {out}: SBC of {result.n_replicates} replicates x {len(result.names)} parameters, "
+                f"min chi-square p {result.min_p:.3f}, pooled p {result.pooled_uniformity()[1]:.3f}")
+    if args.replicate is None or args.study is None:
+        raise CLIError("give --study and --replicate I (one replicate) or --gather FILES")
+    from .study import load_study
+
+    campaign = sbc.campaign_from_study(load_study(args.study), prior_spread=args.prior_spread)
+    record = sbc.sbc_replicate(**campaign, index=args.replicate, seed=args.seed, n_draws=args.draws,
+                               backend=io.prepare_output(args.backend) if args.backend else None)
+    out.write_text(json.dumps(record, indent=1))
+    return (f"wrote {out}: SBC replicate {args.replicate}, ranks {record['ranks']} of {args.draws}, "
+            f"{'converged' if record['converged'] else 'NOT converged'} after {record['n_steps']} steps, "
+            f"{record['wall_time_s']:.1f} s")
+
+
+# --------------------------------------------------------------------------------------
+# compile
+# --------------------------------------------------------------------------------------
+def _add_compile(subparsers) -> None:
+    p = subparsers.add_parser(
+        "compile", help="fill the numba cache of every simulation kernel",
+        description="Call every simulation kernel once on a few samples (each concept, integrator "
+                    "and catalogue effect, and the self-check simulator) so later commands load "
+                    "compiled code instead of compiling it. The cache lives beside the package "
+                    "modules, or under NUMBA_CACHE_DIR.")
+    p.add_argument("--concept", nargs="+", choices=CONCEPTS, default=None,
+                   help="only these concepts (default: all)")
+    p.add_argument("--out", metavar="FILE.json", default=None,
+                   help="write the paths compiled and their seconds (a workflow stamp)")
+    p.set_defaults(handler=_run_compile)
+
+
+def _run_compile(args: argparse.Namespace) -> str:
+    import json
+    import time
+
+    from .compile import compile_kernels
+
+    t0 = time.perf_counter()
+    rows = compile_kernels(args.concept)
+    total = time.perf_counter() - t0
+    if args.out:
+        with open(args.out, "w") as fh:
+            json.dump({"seconds": total, "paths": rows}, fh, indent=1)
+    skipped = sum(r["status"] != "ok" for r in rows)
+    return (f"compiled {len(rows) - skipped} kernel paths in {total:.1f} s"
+            + (f" ({skipped} not applicable)" if skipped else "") + (f" -> {args.out}" if args.out else ""))
+
+
+# --------------------------------------------------------------------------------------
 # entry point
 # --------------------------------------------------------------------------------------
 #: Register functions, one per verb, in the order ``--help`` lists them.
 VERBS: tuple[Callable, ...] = (_add_simulate, _add_identify, _add_sample, _add_sensitivity,
                                _add_identifiability, _add_gap, _add_gap_selfcheck, _add_fault_diagnosis, _add_report, _add_check_study,
-                               _add_screenshot)
+                               _add_screenshot, _add_sbc, _add_compile)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -31,9 +31,25 @@ MAX_GRID = 32
 # the output-error likelihood
 # ----------------------------------------------------------------------------------------
 def covariance(residuals: np.ndarray) -> np.ndarray:
-    """R = (1/N) Σ e eᵀ of (N, n_channels) residuals (eq. 49), or of a batch (n_sets, N, n_ch)."""
+    """R = (1/N) Σ e eᵀ of (N, n_channels) residuals (eq. 49), or of a batch (n_sets, N, n_ch).
+
+    A matrix product eᵀ e (BLAS), not an einsum: with few channels and many samples the
+    einsum loop costs more than the simulations of the posterior."""
+    residuals = np.asarray(residuals)
     n = residuals.shape[-2]
-    return np.einsum("...ki,...kj->...ij", residuals, residuals) / n
+    return np.matmul(np.swapaxes(residuals, -1, -2), residuals) / n
+
+
+def information(sens: np.ndarray, r_inv: np.ndarray) -> np.ndarray:
+    """Fisher information Σ_k S_k R⁻¹ S_kᵀ (p, p) of sensitivities ``sens`` (p, N, m) under
+    residual covariance R (``r_inv`` = R⁻¹, (m, m)): entry (j, l) = Σ_k,c,d S_jkc R⁻¹_cd S_lkd.
+
+    Two matrix products ((S R⁻¹) reshaped to (p, N·m) times Sᵀ) instead of a three-operand
+    einsum; the same sum in another order."""
+    sens = np.asarray(sens, dtype=float)
+    p = sens.shape[0]
+    weighted = (sens @ r_inv).reshape(p, -1)
+    return weighted @ sens.reshape(p, -1).T
 
 
 def log_det_r(r: np.ndarray) -> float | np.ndarray:

@@ -20,6 +20,7 @@ import numpy as np
 from .. import statistics
 from ..identify.problem import FitProblem
 from ..identify.result import FitResult
+from ..statistics import covariance
 from .errors import BayesError
 from .priors import LOG_2PI, Prior
 
@@ -59,10 +60,12 @@ class LogPosterior:
         """(n,) log L of residuals (n, N, n_channels); -inf for a singular R or NaN residuals."""
         n_obs = residuals.shape[1]
         if self.noise_sigma is None:
-            ll = -0.5 * n_obs * statistics.log_det_r(statistics.covariance(residuals))  # singular R: -inf
+            ll = -0.5 * n_obs * statistics.log_det_r(covariance(residuals))  # singular R: +inf log det, -inf here
         else:
             s = self.noise_sigma
-            ll = (-0.5 * np.sum((residuals / s) ** 2, axis=(1, 2))
+            # Σ_k Σ_c (e_kc/σ_c)² as (Σ_k e_kc²) · σ⁻²: no scaled copy of the residuals
+            sq = np.einsum("skc,skc->sc", residuals, residuals)
+            ll = (-0.5 * (sq @ s ** -2.0)
                   - n_obs * np.sum(np.log(s)) - 0.5 * n_obs * s.size * LOG_2PI)
         return np.where(np.isfinite(ll), ll, -np.inf)
 

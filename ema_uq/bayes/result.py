@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from ..statistics import covariance
 from .errors import BayesError
 from .stopping import pooled_draws
 
@@ -217,9 +218,8 @@ def _predictive(problem, posterior, flat, rng, n_predictive, obs_coords, meta):
     model_out = problem.predict(thetas)                       # (n_pp, N, m)
     if posterior.noise_sigma is None:
         e = problem.observed[None] - model_out
-        r = np.einsum("ski,skj->sij", e, e) / e.shape[1]
-        chol = np.linalg.cholesky(r)
-        noise = np.einsum("sij,skj->ski", chol, rng.standard_normal(model_out.shape))
+        chol = np.linalg.cholesky(covariance(e))
+        noise = rng.standard_normal(model_out.shape) @ np.swapaxes(chol, -1, -2)   # L z per sample
     else:
         noise = rng.standard_normal(model_out.shape) * posterior.noise_sigma
     replicate = model_out + noise

@@ -16,6 +16,12 @@ changes the posterior of Θ by O(1/N), far below what R = 100 replicates can see
 
 Uniformity test (:func:`rank_uniformity`): the ranks binned into B equal bins of the L + 1
 rank values, Pearson χ² with B - 1 degrees of freedom.
+
+Scattered campaigns: :func:`sbc_replicate` runs replicate r alone (its random stream is child r
+of ``SeedSequence(seed)``, the same one :func:`sbc_ranks` gives it, so scattered and serial
+campaigns agree replicate by replicate), with a sampler backend so a killed replicate resumes;
+:func:`gather_replicates` joins the replicate records into an :class:`SbcResult`;
+:func:`campaign_from_study` takes the problem and sampler settings of a study file.
 """
 from __future__ import annotations
 
@@ -190,6 +196,7 @@ class SbcResult:
         chi2, p = self.pooled_uniformity()
         out["pooled"] = {"chi2": chi2, "p": p}
         out["min_p"] = self.min_p
+        out["ks_p"] = {n: ks_uniformity(self.ranks[:, j], self.n_draws) for j, n in enumerate(self.names)}
         return out
 
     def to_json(self) -> str:
@@ -237,24 +244,136 @@ def sbc_ranks(
     prior_list = build_priors(template, priors)
     prior_draws(prior_list, np.random.default_rng(0), 1)                # an improper prior fails here
     rows = []
-    for r, child in enumerate(np.random.SeedSequence(seed).spawn(n_replicates)):
+    for r in range(n_replicates):
         rows.append(_replicate(model, experiment, parameters, priors, prior_list, channels, noise, settings,
-                               n_draws, np.random.default_rng(child)))
+                               n_draws, replicate_rng(seed, r)))
         if progress is not None:
             rank, _, converged, rhat, steps, secs = rows[-1]
             progress(f"replicate {r + 1}/{n_replicates}: ranks {rank.tolist()} of {n_draws}, "
                      f"{'converged' if converged else 'NOT converged'} after {steps} steps, R-hat {rhat:.4f}, {secs:.1f} s")
     ranks, truths, converged, rhat, steps, secs = (np.array(col) for col in zip(*rows))
-    design = {"concept": model.name, "experiment": experiment.name, "n_samples": experiment.n_samples,
-              "channels": list(template.channels), "noise_fraction": noise,
-              "priors": {n: p.describe() for n, p in zip(template.parameters.free_names, prior_list)},
-              "fixed_values": {p.name: p.nominal for p in parameters if not p.free},
-              "settings": {k: v for k, v in asdict(settings).items()}}
+    design = _design(model, experiment, template, prior_list, parameters, noise, settings)
     return SbcResult(template.parameters.free_names, ranks, truths, n_draws, n_bins, seed, converged.astype(bool),
                      rhat, steps, secs, design)
 
 
-def _replicate(model, experiment, parameters, priors, prior_list, channels, noise, settings, n_draws, rng):
+def _design(model, experiment, template, prior_list, parameters, noise, settings) -> dict:
+    return {"concept": model.name, "experiment": experiment.name, "n_samples": experiment.n_samples,
+            "channels": list(template.channels), "noise_fraction": noise,
+            "priors": {n: p.describe() for n, p in zip(template.parameters.free_names, prior_list)},
+            "fixed_values": {p.name: p.nominal for p in parameters if not p.free},
+            "settings": {k: v for k, v in asdict(settings).items()}}
+
+
+def replicate_rng(seed: int, index: int) -> np.random.Generator:
+    """The random stream of replicate ``index`` of a campaign seeded ``seed``: child ``index``
+    of ``SeedSequence(seed)``, whatever the number of replicates."""
+    if index < 0:
+        raise BayesError(f"replicate index {index} must be >= 0")
+    return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(index,)))
+
+
+def sbc_replicate(
+    model: Model | str,
+    experiment: Experiment,
+    parameters: ParameterSet,
+    priors: Mapping[str, tuple[str, float, float]],
+    *,
+    index: int,
+    seed: int = 0,
+    n_draws: int = 99,
+    channels: Sequence[str] | None = None,
+    noise: float = 0.02,
+    settings: SamplerSettings = SamplerSettings(integrator="hybrid", n_predictive=0),
+    backend=None,
+) -> dict:
+    """Replicate ``index`` of the campaign :func:`sbc_ranks` would run with the same arguments,
+    alone: a JSON-ready record (ranks, truth, converged, max R-hat, steps, seconds, the design).
+    ``backend``: the sampler's HDF5 file; a replicate killed while sampling resumes its chains
+    there (a file of other settings is moved aside)."""
+    model = get_model(model) if isinstance(model, str) else model
+    template = FitProblem([synthesize(model, experiment, parameters.nominal, noise=0.0, channels=channels)],
+                          parameters=parameters)
+    prior_list = build_priors(template, priors)
+    prior_draws(prior_list, np.random.default_rng(0), 1)                # an improper prior fails here
+    rank, truth, converged, rhat, steps, secs = _replicate(
+        model, experiment, parameters, priors, prior_list, channels, noise, settings, n_draws,
+        replicate_rng(seed, index), backend=backend)
+    return {"index": int(index), "seed": int(seed), "names": list(template.parameters.free_names),
+            "n_draws": int(n_draws), "ranks": rank.tolist(), "truth": truth.tolist(), "converged": bool(converged),
+            "max_rhat": rhat, "n_steps": int(steps), "wall_time_s": secs,
+            "design": _design(model, experiment, template, prior_list, parameters, noise, settings)}
+
+
+def gather_replicates(records: Sequence[Mapping], n_bins: int = 10) -> SbcResult:
+    """The :class:`SbcResult` of replicate records of :func:`sbc_replicate` (one campaign:
+    same parameters, draws, seed and design; each index once), ordered by index."""
+    if not records:
+        raise BayesError("no SBC replicate records to gather; run some replicates first")
+    first = records[0]
+    for key in ("names", "n_draws", "seed", "design"):
+        odd = [r["index"] for r in records if r[key] != first[key]]
+        if odd:
+            raise BayesError(f"replicates {odd} differ from replicate {first['index']} in {key}; "
+                             "gather the replicates of one campaign")
+    indices = [r["index"] for r in records]
+    if len(set(indices)) != len(indices):
+        raise BayesError(f"replicate indices repeat: {sorted(i for i in set(indices) if indices.count(i) > 1)}")
+    rows = sorted(records, key=lambda r: r["index"])
+    n_draws = int(first["n_draws"])
+    rank_counts(np.zeros(1, dtype=int), n_draws, n_bins)                 # checks the bins
+    col = lambda key, dtype=float: np.array([r[key] for r in rows], dtype=dtype)   # noqa: E731
+    return SbcResult(tuple(first["names"]), col("ranks", int), col("truth"), n_draws, n_bins, int(first["seed"]),
+                     col("converged", bool), col("max_rhat"), col("n_steps", int), col("wall_time_s"),
+                     {**first["design"], "replicates": [r["index"] for r in rows]})
+
+
+def ks_uniformity(ranks: np.ndarray, n_draws: int) -> float:
+    """p of the Kolmogorov-Smirnov test of ranks (0..n_draws) against the uniform law, on the
+    centred normalised ranks (rank + ½) / (L + 1) (the ranks are discrete: p is approximate,
+    conservative for large L)."""
+    return float(stats.kstest((np.ravel(ranks) + 0.5) / (n_draws + 1), "uniform").pvalue)
+
+
+#: default spread of the campaign priors: ln Θ_j ~ N(ln Θ_j,nominal, 0.1), about ±10 %
+PRIOR_SPREAD = 0.1
+
+
+def campaign_from_study(study: Mapping, prior_spread: float = PRIOR_SPREAD) -> dict:
+    """Keyword arguments of :func:`sbc_replicate` for a study: its concept, estimation
+    experiment, noise fraction, channels and ``data.set`` truth, every parameter free that its
+    ``identify.fix`` does not fix, and the study's sampler settings (no predictive draws).
+
+    Priors: SBC draws the truth from them, so they must be proper. A parameter with a rig
+    pseudo-measurement keeps its rig normal prior; every other free parameter (flat on a
+    half-infinite range by default: improper) gets ln Θ ~ N(ln Θ_nominal, ``prior_spread``)
+    (a normal of sd ``prior_spread`` when its nominal value is not positive)."""
+    from ..experiments import get_experiment
+    from ..study import section, settings_for
+
+    if not (math.isfinite(prior_spread) and prior_spread > 0):
+        raise BayesError(f"prior spread {prior_spread} must be a positive number (0.1: about 10 %)")
+    model = get_model(study["concept"])
+    data = section(dict(study), "data")
+    s = settings_for(dict(study), "sample")
+    fix = list(settings_for(dict(study), "identify").get("fix") or [])
+    overrides = {k: v for k, v in (s.get("set") or {}).items() if k in model.parameters.names}
+    parameters = model.parameters.with_nominal(overrides).freeing_only(
+        [n for n in model.parameters.names if n not in fix])
+    priors = {}
+    for p in parameters:
+        if p.free and p.prior_std is None:
+            priors[p.name] = (("lognormal", math.log(p.nominal), prior_spread) if p.nominal > 0
+                              else ("normal", p.nominal, prior_spread))
+    settings = SamplerSettings(n_walkers=s["walkers"], n_ensembles=s["chains"], max_steps=s["max_steps"],
+                               check_every=s["check_every"], moves=s["moves"], defensive_weight=s["defensive"],
+                               integrator=s["integrator"], n_predictive=0)
+    return {"model": model, "experiment": get_experiment(data["estimation"]), "parameters": parameters,
+            "priors": priors, "channels": data.get("channels"), "noise": float(data["noise"]), "settings": settings}
+
+
+def _replicate(model, experiment, parameters, priors, prior_list, channels, noise, settings, n_draws, rng,
+               backend=None):
     """One replicate: (ranks (n_free,), Θ_r (n_free,), converged, max R-hat, steps, seconds)."""
     from .sampler import sample
 
@@ -266,8 +385,10 @@ def _replicate(model, experiment, parameters, priors, prior_list, channels, nois
     data = synthesize(model, experiment, truth, noise=noise, seed=data_seed, channels=channels)
     problem = FitProblem([data], parameters=parameters)
     fit = estimate(problem)
-    result = sample(problem, fit, priors=priors, settings=settings, seed=sampler_seed, predictive=False)
+    result = sample(problem, fit, priors=priors, settings=settings, seed=sampler_seed, predictive=False,
+                    backend=backend, replace_stale_backend=backend is not None)
     draws = thinned_draws(result, n_draws)
     rhat = float(np.max(result.summary()["r_hat"].values))
     return (ranks_of(truth_free, draws), truth_free, result.converged, rhat, result.n_steps,
             time.perf_counter() - t0)
+

@@ -591,7 +591,7 @@ def _relevant_base(problem: FitProblem, theta: np.ndarray, predicted: np.ndarray
     sens = (problem.predict(thetas[1:]) - predicted[None]) / (h / scale)[:, None, None]     # (p, N, m)
     residual = problem.observed - predicted
     r_inv = np.linalg.inv(residual.T @ residual / residual.shape[0])
-    info = np.einsum("jkc,cd,lkd->jl", sens, r_inv, sens)
+    info = statistics.information(sens, r_inv)
     d = np.sqrt(np.maximum(np.diag(info), 1e-300))
     corr = np.abs(info / np.outer(d, d))
     names = [params.names[i] for i in idx]
@@ -613,7 +613,7 @@ def _unidentifiable_parameters(problem: FitProblem, theta: np.ndarray) -> list[s
     sens = (predicted[1:] - predicted[0][None]) / (h / scale)[:, None, None]
     residual = problem.observed - predicted[0]
     r_inv = np.linalg.inv(residual.T @ residual / residual.shape[0])
-    info = np.einsum("jkc,cd,lkd->jl", sens, r_inv, sens)
+    info = statistics.information(sens, r_inv)
     fixed = [names[i] for j, i in enumerate(idx) if not np.any(sens[j])]
     while True:
         keep = [j for j, i in enumerate(idx) if names[i] not in fixed]

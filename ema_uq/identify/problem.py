@@ -31,6 +31,20 @@ class IdentificationError(EmaUqError):
     a problem the data cannot answer (singular information matrix)."""
 
 
+def _as_slice(index: np.ndarray) -> slice | np.ndarray:
+    """A basic slice equal to an increasing, evenly spaced integer ``index`` (indexing with it is
+    a view), else the index itself."""
+    index = np.asarray(index, dtype=int)
+    if index.size == 0:
+        return index
+    if index.size == 1:
+        return slice(int(index[0]), int(index[0]) + 1)
+    step = int(index[1] - index[0])
+    if step > 0 and np.all(np.diff(index) == step):
+        return slice(int(index[0]), int(index[-1]) + 1, step)
+    return index
+
+
 @dataclass(frozen=True)
 class _Block:
     """One experiment's data restricted to the fitted channels and complete samples."""
@@ -64,6 +78,8 @@ class FitProblem:
     model: Model | None = None
     blocks: tuple[_Block, ...] = field(init=False, repr=False)
     channel_index: np.ndarray = field(init=False, repr=False)
+    _observed: np.ndarray = field(init=False, repr=False, compare=False)
+    _channel_take: slice | np.ndarray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         measurements = tuple(self.measurements)
@@ -127,6 +143,10 @@ class FitProblem:
         object.__setattr__(self, "constants", consts)
         object.__setattr__(self, "blocks", tuple(blocks))
         object.__setattr__(self, "channel_index", model.output_index(channels))
+        observed = np.concatenate([b.observed for b in blocks])
+        observed.flags.writeable = False
+        object.__setattr__(self, "_observed", observed)
+        object.__setattr__(self, "_channel_take", _as_slice(self.channel_index))
 
     # --- sizes -------------------------------------------------------------------
     @property
@@ -140,8 +160,8 @@ class FitProblem:
 
     @property
     def observed(self) -> np.ndarray:
-        """(N, n_channels) measured values of every complete sample."""
-        return np.concatenate([b.observed for b in self.blocks])
+        """(N, n_channels) measured values of every complete sample (read-only, built once)."""
+        return self._observed
 
     # --- model evaluation ----------------------------------------------------------
     def full_vectors(self, free_values: np.ndarray, base: np.ndarray) -> np.ndarray:
@@ -158,12 +178,24 @@ class FitProblem:
         set follows the adaptive step sequence of the first (finite differences around it).
         """
         thetas = np.atleast_2d(thetas)
-        parts = []
+        cols = self._channel_take
+        if len(self.blocks) == 1 and self.blocks[0].rows.size == self.blocks[0].time.size and isinstance(cols, slice):
+            b = self.blocks[0]            # every sample complete, channels contiguous: a view, no copy
+            return simulate_batch(self.model, thetas, b.time, b.inputs, constants=self.constants,
+                                  share_steps=share_steps)[:, :, cols]
+        result = np.empty((thetas.shape[0], self.n_samples, len(self.channels)))
+        start = 0
         for b in self.blocks:
             out = simulate_batch(self.model, thetas, b.time, b.inputs, constants=self.constants,
                                  share_steps=share_steps)
-            parts.append(out[:, b.rows][:, :, self.channel_index])
-        return np.concatenate(parts, axis=1)
+            stop = start + b.rows.size
+            if b.rows.size == b.time.size:
+                rows = slice(None)
+            else:
+                rows = b.rows if isinstance(cols, slice) else b.rows[:, None]
+            result[:, start:stop] = out[:, rows, cols]      # one indexing step, written in place
+            start = stop
+        return result
 
     def residuals(self, thetas: np.ndarray) -> np.ndarray:
         """z - y, (n_sets, N, n_channels)."""

@@ -95,3 +95,46 @@ def test_rank_histogram_figure(campaign):
 
     fig = sbc_rank_histogram(campaign)
     assert len([ax for ax in fig.axes if ax.get_visible()]) == 2
+
+
+# --------------------------------------------------------------------------------------
+# a scattered campaign: replicates alone, then gathered
+# --------------------------------------------------------------------------------------
+def test_scattered_replicates_gather_to_the_serial_campaign(campaign, tmp_path):
+    import json
+
+    from ema_uq import cli
+    from ema_uq.bayes.sbc import gather_replicates, ks_uniformity, replicate_rng, sbc_replicate
+
+    model = get_model("htls")
+    free = ("k_n", "B_TS1")
+    params = model.parameters.freeing_only(free)
+    priors = {n: ("normal", params[n].nominal, 0.05 * params[n].nominal) for n in free}
+    settings = SamplerSettings(n_walkers=6, n_ensembles=2, max_steps=60, check_every=30, adapt_steps=0,
+                               integrator="hybrid", n_predictive=0)
+    picked = (4, 0, 9)                                      # any order; each replicate on its own
+    records = [sbc_replicate(model, deploy_retract().slice(0, 150), params, priors, index=r, seed=7,
+                             n_draws=N_DRAWS, settings=settings, backend=tmp_path / f"rep_{r}.h5") for r in picked]
+    for rec in records:
+        np.testing.assert_array_equal(rec["ranks"], campaign.ranks[rec["index"]])
+        np.testing.assert_allclose(rec["truth"], campaign.truths[rec["index"]], rtol=0, atol=0)
+    gathered = gather_replicates(records, n_bins=4)
+    assert gathered.n_replicates == 3 and gathered.design["replicates"] == [0, 4, 9]
+    np.testing.assert_array_equal(gathered.ranks, campaign.ranks[[0, 4, 9]])
+    assert 0.0 <= ks_uniformity(gathered.ranks[:, 0], N_DRAWS) <= 1.0
+    # the replicate streams are the serial campaign's children
+    assert replicate_rng(7, 3).random() == np.random.default_rng(np.random.SeedSequence(7).spawn(5)[3]).random()
+    # gather through the CLI: JSON with chi-square and KS p per parameter, and the figure
+    paths = []
+    for rec in records:
+        paths.append(tmp_path / f"rep_{rec['index']}.json")
+        paths[-1].write_text(json.dumps(rec))
+    assert cli.main(["sbc", "--gather", *map(str, paths), "--bins", "4", "--out", str(tmp_path / "sbc.json"),
+                     "--figure", str(tmp_path / "sbc.png")]) == 0
+    out = json.loads((tmp_path / "sbc.json").read_text())
+    assert set(out["uniformity"]) == set(out["ks_p"]) == set(free)
+    assert (tmp_path / "sbc.png").stat().st_size > 0
+    # records of two campaigns are refused in one line
+    other = {**records[0], "seed": 8, "index": 11}
+    with pytest.raises(BayesError, match="differ"):
+        gather_replicates([records[0], other])
