@@ -311,6 +311,8 @@ def selfcheck_chunks(w):
 
 rule gap_selfcheck_case:
     # one part of the self-check: every N-th case from case I (counted from 0); a failed part reruns alone
+    input:
+        compiled=ancient(COMPILED),
     output:
         "results/{study}/selfcheck/part_{chunk}.json",
     params:
