@@ -16,7 +16,12 @@ Also: accuracy of the peer and of each integrator against the DOP853 rtol 1e-10 
 (so the peer is compared at equal accuracy), and numba compile time measured in fresh
 subprocesses with an empty cache directory (first process compiles, second reuses the cache).
 
-Usage: python benchmarks/simulate.py [--quick]
+With ``--effects``: the cost of one run of each effect's kernel (each catalogue effect alone,
+at its nominal values) relative to the nominal kernel, per concept and integrator, on one
+thread; ``--versus DIR`` measures a second package root (e.g. a worktree of an earlier commit)
+interleaved with this one and prints the two side by side.
+
+Usage: python benchmarks/simulate.py [--quick] [--effects [--versus DIR]]
 """
 from __future__ import annotations
 
@@ -138,12 +143,95 @@ def compile_times() -> list[dict]:
     return rows
 
 
+
+# --- cost of the effect kernels relative to the nominal one ---------------------------------
+_EFFECT_COSTS = r"""
+import json, sys, time
+import numpy as np
+from ema_uq import deploy_retract, get_model, simulate_batch
+from ema_uq.models.effects import CATALOGUE
+concepts, methods, repeats = sys.argv[1].split(","), sys.argv[2].split(","), int(sys.argv[3])
+ex = deploy_retract()
+rows = {}
+for concept in concepts:
+    base = get_model(concept)
+    models = {"nominal": base, **{name: base.with_effects([name]) for name in CATALOGUE}}
+    for method in methods:
+        for label, model in models.items():  # compile and warm up first
+            simulate_batch(model, model.parameters.nominal, ex.time, ex.input_matrix(model), integrator=method)
+        best = {label: np.inf for label in models}
+        for _ in range(repeats):  # interleaved: every kernel once per round, best of the rounds
+            for label, model in models.items():
+                theta, inputs = model.parameters.nominal, ex.input_matrix(model)
+                t = time.perf_counter()
+                simulate_batch(model, theta, ex.time, inputs, integrator=method)
+                best[label] = min(best[label], time.perf_counter() - t)
+        for label, seconds in best.items():
+            rows[f"{concept}|{method}|{label}"] = seconds
+print(json.dumps(rows))
+"""
+
+
+def effect_costs(concepts, methods, repeats: int, rounds: int, roots: dict[str, str]) -> dict[str, dict[str, float]]:
+    """Best time [s] of one deploy-retract run of each concept, method and model (nominal and
+    each catalogue effect at its nominal values, alone), for each package root of ``roots``
+    (label -> directory put first on PYTHONPATH; "" for the installed one). Single-threaded;
+    the roots take turns ``rounds`` times (interleaved), each best of ``repeats`` runs."""
+    best: dict[str, dict[str, float]] = {label: {} for label in roots}
+    for _ in range(rounds):
+        for label, root in roots.items():
+            env = dict(os.environ, NUMBA_NUM_THREADS="1")
+            if root:
+                env["PYTHONPATH"] = os.pathsep.join(filter(None, (root, env.get("PYTHONPATH", ""))))
+            res = subprocess.run([sys.executable, "-c", _EFFECT_COSTS, ",".join(concepts), ",".join(methods),
+                                  str(repeats)], env=env, check=True, capture_output=True, text=True)
+            for key, seconds in json.loads(res.stdout.strip().splitlines()[-1]).items():
+                best[label][key] = min(best[label].get(key, np.inf), seconds)
+    return best
+
+
+def print_effect_costs(best: dict[str, dict[str, float]]) -> None:
+    """Each effect's run time over the nominal run's, per concept and method, the roots side by side."""
+    labels = list(best)
+    keys = list(next(iter(best.values())))
+    print("\neffect kernel cost per run relative to the nominal kernel (one set, one thread, best of "
+          "interleaved runs; nominal: ms per run):")
+    print(f"{'concept':<8}{'method':<8}{'model':<26}" + "".join(f"{label:>14}" for label in labels))
+    for key in keys:
+        concept, method, model = key.split("|")
+        cells = []
+        for label in labels:
+            seconds = best[label].get(key)
+            nominal = best[label].get(f"{concept}|{method}|nominal")
+            if seconds is None:
+                cells.append(f"{'-':>14}")
+            elif model == "nominal":
+                cells.append(f"{1e3 * seconds:>11.2f} ms")
+            else:
+                cells.append(f"{seconds / nominal:>13.2f}x")
+        print(f"{concept:<8}{method:<8}{model:<26}" + "".join(cells))
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer repeats, no accuracy check")
     ap.add_argument("--peer-rtol", type=float, default=1e-6,
                     help="peer tolerance; 1e-8 matches the fixed-step simulator's accuracy (default 1e-6)")
+    ap.add_argument("--effects", action="store_true",
+                    help="only the effect kernels' cost per run relative to the nominal kernel")
+    ap.add_argument("--versus", metavar="DIR",
+                    help="with --effects: a second package root (e.g. a worktree of an earlier commit), "
+                         "measured interleaved with this one and printed beside it")
     args = ap.parse_args(argv)
+    if args.effects:
+        roots = {"this": ""}
+        if args.versus:
+            roots = {"versus": os.path.abspath(args.versus), "this": os.path.abspath(os.path.join(HERE, os.pardir))}
+        repeats, rounds = (2, 1) if args.quick else (3, 3)
+        print("load average at start (1, 5, 15 min): %.2f %.2f %.2f" % os.getloadavg())
+        print_effect_costs(effect_costs(("htls", "lths"), ("rk4", "dopri5"), repeats, rounds, roots))
+        print("load average at end (1, 5, 15 min): %.2f %.2f %.2f" % os.getloadavg())
+        return
     n_peer, n_single, repeats = (1, 5, 1) if args.quick else (3, 20, 5)
     threads = numba.get_num_threads()
 
