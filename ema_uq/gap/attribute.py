@@ -485,8 +485,11 @@ def _simulate_records(model, thetas: np.ndarray, measurements: Sequence[Measurem
 # candidates
 # ----------------------------------------------------------------------------------------
 def _catalogue(model) -> dict[str, Any]:
-    """The concept's candidate effects, name -> Effect (``Model.effect_catalogue``)."""
-    catalogue = dict(getattr(model, "effect_catalogue", None) or {})
+    """The concept's candidate effects, name -> Effect (``Model.effect_catalogue``), less the
+    compounds that carry another family's mechanism (``Effect.combines``): a candidate is one
+    mechanism."""
+    catalogue = {name: effect for name, effect in (getattr(model, "effect_catalogue", None) or {}).items()
+                 if not getattr(effect, "combines", ())}
     if not catalogue or not hasattr(model, "with_effects"):
         raise GapError(f"concept {model.name} has no catalogue of unmodelled effects; the gap diagnosis needs one")
     return catalogue
@@ -1061,6 +1064,11 @@ def diagnose(
     settings = strategy.settings if settings is None else settings
     catalogue = _catalogue(base)
     if candidates is not None:
+        compound = [c for c in candidates if getattr(base.effect_catalogue.get(c), "combines", ())]
+        if compound:
+            raise GapError(f"effect(s) {', '.join(compound)} carry another family's mechanism "
+                           f"({', '.join(f for c in compound for f in base.effect_catalogue[c].combines)}) and are no "
+                           "candidates; give single mechanisms (forward selection combines them: max_effects)")
         unknown = [c for c in candidates if c not in catalogue]
         if unknown:
             raise GapError(f"unknown candidate effect(s) {', '.join(unknown)} for concept {concept}; "

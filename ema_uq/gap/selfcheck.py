@@ -556,9 +556,12 @@ def case_seed(seed: int, concept: str, sensors: str, slot: int) -> int:
 
 
 def catalogue_families(concept: str) -> dict[str, list[str]]:
-    """{family: [effect forms]} of the concept's catalogue (``Effect.family``, else the effect's name)."""
+    """{family: [effect forms]} of the concept's candidate effects (``Effect.family``, else the
+    effect's name; compounds of several mechanisms, ``Effect.combines``, are no candidates)."""
     out: dict[str, list[str]] = {}
     for name, effect in get_model(concept).effect_catalogue.items():
+        if getattr(effect, "combines", ()):
+            continue
         out.setdefault(getattr(effect, "family", None) or name, []).append(name)
     return out
 

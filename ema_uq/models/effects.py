@@ -144,7 +144,11 @@ class Effect:
     output-side step ``f(model, thetas, time, out) -> out`` run by ``simulate_batch`` after
     the kernel). ``family`` (default: the effect's own name) groups alternative forms of one
     piece of physics (e.g. play in a rigid or in a compliant drive train): the gap diagnosis
-    names the family and reports the form.
+    names the family and reports the form. ``combines`` names other families whose mechanism
+    the effect carries beside its own (a play inside a compliant coupling carries the coupling's
+    spring, ``shaft_compliance``): such a compound is simulated like any effect, but the gap
+    diagnosis does not offer it as a candidate, since a candidate is one mechanism and a
+    compound would explain its parts' faults under its own family's name.
     """
 
     name: str
@@ -159,6 +163,7 @@ class Effect:
     constants: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
     postprocess: Callable | None = None
     family: str = ""
+    combines: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if not self.family:  # a form of its own: the family is the effect itself
@@ -345,6 +350,7 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (
         # the play shows at reversals, the coupling rings under acceleration (as shaft_compliance,
         # which it contains at δ = 0: its signature match must not favour the form with play)
         signature=("high_acceleration", "reversal", "periodic"), magnitude="backlash_compliant_period",
+        combines=("shaft_compliance",),
         extra_states={"htls": ("coupling_twist", "coupling_twist_rate"),
                       "lths": ("coupling_twist", "coupling_twist_rate")},
         state_scales={"coupling_twist": 0.01, "coupling_twist_rate": 1.0},  # [rad], [rad/s]

@@ -183,3 +183,25 @@ def test_an_unexplained_gap_is_high_confidence_only_when_the_state_predicts_it()
     assert verdict(th, nothing_fits, True, True, Clean(), Clean(), deterministic=True).confidence == "high"
     assert verdict(th, nothing_fits, True, True, Clean(), Clean(), deterministic=False).confidence == "low"
     assert verdict(th, nothing_fits, True, True, Clean(), Clean(), deterministic=None).confidence == "high"
+
+
+def test_a_compound_of_two_mechanisms_is_no_candidate():
+    from ema_uq.gap import GapError
+    from ema_uq.gap.attribute import _catalogue
+    from ema_uq.gap.selfcheck import catalogue_families
+
+    model = get_model("htls")
+    assert model.effect_catalogue["backlash_compliant"].combines == ("shaft_compliance",)
+    assert "backlash_compliant" not in _catalogue(model) and "shaft_compliance" in _catalogue(model)
+    assert "backlash_compliant" not in catalogue_families("htls")["backlash"]
+    with pytest.raises(GapError, match="carry another family's mechanism"):
+        _refuse_compound()
+
+
+def _refuse_compound():
+    from ema_uq import synthesize
+    from ema_uq.experiments import deploy_retract
+    from ema_uq.gap import diagnose
+
+    data = synthesize("htls", deploy_retract().slice(0, 200), noise=0.02, seed=1)
+    diagnose([data], candidates=["backlash_compliant"])
