@@ -329,32 +329,39 @@ def _synthetic_record_sets(friction_n: float, drift_a: float):
     ``friction_n`` under positive loads) and ``drift`` (nominal), the last two with a
     run-to-run drift of the current: a slow wave (period 40 s) of random phase and an
     amplitude drawn per run with standard deviation ``drift_a``; white noise on both channels."""
-    from ema_uq.experiments import Experiment, Measurement
-
     fault = MODEL.with_effects(["lubrication_loss"], {"lubrication_loss_dC_pos": friction_n,
                                                       "lubrication_loss_dC_neg": 0.0, "lubrication_loss_c_v": 0.0})
     seeds = {"normal": 1, "fault": 2, "drift": 3}
 
     def read(name, runs):
-        model = fault if name == "fault" else MODEL
-        out = []
-        for load in (20.0, 40.0, -40.0):
-            for run in runs:
-                rng = np.random.default_rng([seeds[name], int(load) + 100, run])
-                set_point = _profile() * 1e-3
-                time = np.arange(set_point.size) * 0.04
-                inputs = np.column_stack([set_point, np.full(set_point.size, load * cranfield.G0)])
-                values = simulate_batch(model, model.parameters.nominal, time, inputs)[:, model.output_index(CHANNELS)]
-                values = values + rng.normal(0.0, [1e-4, 0.03], values.shape)
-                if name != "normal":
-                    values[:, 1] += drift_a * rng.normal() * np.sin(2 * np.pi * time / 40.0 + rng.uniform(0, 2 * np.pi))
-                experiment = Experiment(f"{name} load {load:g} kgf run {run}", time,
-                                        {"x_sp": set_point, "F_load": inputs[:, 1]})
-                out.append(Measurement("cranfield", experiment, CHANNELS, values,
-                                       {"record_set": name, "load_kgf": load, "run": run}))
-        return out
+        return _simulated_blocks(fault if name == "fault" else MODEL, name, runs, seeds[name],
+                                 0.0 if name == "normal" else drift_a)
 
     return read
+
+
+def _simulated_blocks(model, name, runs, seed_key, drift_a=0.0):
+    """The blocks (every load) of ``runs`` of one simulated record set: white noise as the rig's
+    (0.1 mm, 0.03 A) and, with ``drift_a``, a slow current wave (period 40 s, random phase, an
+    amplitude drawn per run with standard deviation ``drift_a``)."""
+    from ema_uq.experiments import Experiment, Measurement
+
+    out = []
+    for load in (20.0, 40.0, -40.0):
+        for run in runs:
+            rng = np.random.default_rng([seed_key, int(load) + 100, run])
+            set_point = _profile() * 1e-3
+            time = np.arange(set_point.size) * 0.04
+            inputs = np.column_stack([set_point, np.full(set_point.size, load * cranfield.G0)])
+            values = simulate_batch(model, model.parameters.nominal, time, inputs)[:, model.output_index(CHANNELS)]
+            values = values + rng.normal(0.0, [1e-4, 0.03], values.shape)
+            if drift_a:
+                values[:, 1] += drift_a * rng.normal() * np.sin(2 * np.pi * time / 40.0 + rng.uniform(0, 2 * np.pi))
+            experiment = Experiment(f"{name} load {load:g} kgf run {run}", time,
+                                    {"x_sp": set_point, "F_load": inputs[:, 1]})
+            out.append(Measurement("cranfield", experiment, CHANNELS, values,
+                                   {"record_set": name, "load_kgf": load, "run": run}))
+    return out
 
 
 @pytest.fixture(scope="module")
@@ -445,26 +452,10 @@ def _simulated_faults(faults):
     """A reader of simulated record sets without drift: ``normal`` (nominal rig) and one set per
     entry of ``faults`` (name -> (effect, parameter values)); white noise on both channels as
     the rig's (0.1 mm, 0.03 A)."""
-    from ema_uq.experiments import Experiment, Measurement
-
     models = {"normal": MODEL, **{name: MODEL.with_effects([effect], values) for name, (effect, values) in faults.items()}}
 
     def read(name, runs):
-        model = models[name]
-        out = []
-        for load in (20.0, 40.0, -40.0):
-            for run in runs:
-                rng = np.random.default_rng([list(models).index(name), int(load) + 100, run])
-                set_point = _profile() * 1e-3
-                time = np.arange(set_point.size) * 0.04
-                inputs = np.column_stack([set_point, np.full(set_point.size, load * cranfield.G0)])
-                values = simulate_batch(model, model.parameters.nominal, time, inputs)[:, model.output_index(CHANNELS)]
-                values = values + rng.normal(0.0, [1e-4, 0.03], values.shape)
-                experiment = Experiment(f"{name} load {load:g} kgf run {run}", time,
-                                        {"x_sp": set_point, "F_load": inputs[:, 1]})
-                out.append(Measurement("cranfield", experiment, CHANNELS, values,
-                                       {"record_set": name, "load_kgf": load, "run": run}))
-        return out
+        return _simulated_blocks(models[name], name, runs, list(models).index(name))
 
     return read
 
