@@ -23,6 +23,9 @@ PROG = "ema-uq"
 #: answers of ``identify --unidentifiable`` (ema_uq.identify.UNIDENTIFIABLE_MODES; not imported
 #: here, the parser builds without loading the numerics)
 UNIDENTIFIABLE_MODES = ("fix", "error")
+#: verbs that run the numba simulator: a first run compiles its kernels, and says so first
+SIMULATING_VERBS = frozenset({"simulate", "identify", "sample", "sensitivity", "identifiability", "gap",
+                              "gap-selfcheck", "fault-diagnosis"})
 EXIT_OK = 0
 EXIT_ERROR = 2
 
@@ -292,8 +295,15 @@ def _run_identify(args: argparse.Namespace) -> str:
     start = theta if args.start == "nominal" else _read_fit(args.start, args.concept).estimate
     if args.perturb > 0:
         start = perturbed_start(parameters, args.perturb, args.seed, around=start)
-    fit = estimate(problem, method=args.method, start=start, seed=args.seed,
-                   settings=Settings(max_iterations=args.max_iterations), unidentifiable=args.unidentifiable)
+    from .progress import Progress
+
+    with Progress(args.max_iterations, f"{PROG} identify {args.method}", "iteration") as bar:
+        def progress(iteration: int, line: str) -> None:
+            bar.update(iteration - bar.n, line)
+
+        fit = estimate(problem, method=args.method, start=start, seed=args.seed,
+                       settings=Settings(max_iterations=args.max_iterations), unidentifiable=args.unidentifiable,
+                       progress=progress)
     fit.provenance = provenance(args.data + args.validate, seed=args.seed,
                                 settings={k: v for k, v in vars(args).items() if k != "handler"})
     out = fit.to_json()
@@ -420,12 +430,15 @@ def _run_sample(args: argparse.Namespace) -> str:
                                n_predictive=args.predictive, defensive_weight=args.defensive,
                                integrator=args.integrator)
 
+    from .progress import Progress
+
     def progress(line: str) -> None:
         print(f"{PROG} sample: {line}", file=sys.stderr, flush=True)
 
-    result = sample(problem, fit, priors=priors, noise_sigma=args.noise_sigma, settings=settings, seed=args.seed,
-                    backend=backend, progress=None if args.quiet else progress,
-                    replace_stale_backend=args.replace_stale_backend)
+    with Progress(settings.max_steps, f"{PROG} sample", "step", enabled=not args.quiet) as bar:
+        result = sample(problem, fit, priors=priors, noise_sigma=args.noise_sigma, settings=settings, seed=args.seed,
+                        backend=backend, progress=None if args.quiet else progress,
+                        steps=lambda n: bar.update(n - bar.n), replace_stale_backend=args.replace_stale_backend)
     result.to_netcdf(out)
     table = result.summary()
     return (f"wrote {out}: {model.name} posterior of {len(result.names)} parameters, "
@@ -493,9 +506,13 @@ def _run_sensitivity(args: argparse.Namespace) -> str:
     io.prepare_output(out)
     design = settings_for(study, "sensitivity")["design"]
     setup = sobol.setup_from_study({"concept": study["concept"], **design}, n_base=args.n_base)
+    from .progress import Progress
+
     if args.chunk is not None:
         index, total = args.chunk
-        chunk = sobol.evaluate_chunk(setup, setup.design(), index, total)
+        start, stop = sobol.chunk_rows(setup.n_evaluations, index, total)
+        with Progress(stop - start, f"{PROG} sensitivity chunk {index}/{total}", "run") as bar:
+            chunk = sobol.evaluate_chunk(setup, setup.design(), index, total, bar.update)
         chunk.save(out)
         rate = (chunk.stop - chunk.start) / chunk.wall_time_s if chunk.wall_time_s > 0 else float("nan")
         return (f"wrote {out}: {setup.concept} Sobol chunk {index}/{total}, runs {chunk.start}..{chunk.stop - 1} "
@@ -504,7 +521,8 @@ def _run_sensitivity(args: argparse.Namespace) -> str:
         result = sobol.analyze_chunks(setup, [sobol.SobolChunk.load(path) for path in args.gather])
         inputs = list(args.gather)
     else:
-        result = sobol.run(setup)
+        with Progress(setup.n_evaluations, f"{PROG} sensitivity", "run") as bar:
+            result = sobol.run(setup, bar.update)
         inputs = []
     result.provenance = provenance([args.study, *inputs], seed=setup.seed,
                                    settings={"study": study.get("sensitivity"), "n_base": setup.n_base})
@@ -951,6 +969,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         _apply_study(args, _given_options(argv))
+        if args.verb in SIMULATING_VERBS:
+            from .progress import first_compile_notice
+
+            first_compile_notice()
         summary = args.handler(args)
     except (ValueError, OSError) as exc:
         if args.traceback:

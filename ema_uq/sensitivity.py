@@ -31,7 +31,7 @@ import os
 import time as _time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -425,10 +425,12 @@ def _qoi_batch(setup: SensitivitySetup, thetas: np.ndarray, out: np.ndarray, nom
     return np.column_stack(cols)
 
 
-def evaluate(setup: SensitivitySetup, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def evaluate(setup: SensitivitySetup, rows: np.ndarray,
+             progress: Callable[[int], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Evaluate design rows (n, D): returns QoI (n, n_qoi) and the time-resolved series
     (n, len(TIME_RESOLVED_OUTPUTS), n_times), in batches of ``setup.batch_size`` sets per
-    simulator call. Deterministic per row: any split into chunks gives the same numbers."""
+    simulator call. Deterministic per row: any split into chunks gives the same numbers.
+    ``progress`` is called with the number of rows of every finished batch."""
     model = setup.model
     exp = setup.experiment
     inputs = exp.input_matrix(model)
@@ -453,6 +455,8 @@ def evaluate(setup: SensitivitySetup, rows: np.ndarray) -> tuple[np.ndarray, np.
                                    "narrow the ranges (sensitivity.range_fraction or sensitivity.parameters)")
         qoi[start:stop] = _qoi_batch(setup, thetas, out, nominal_out, k_y, phi_r, exp.dt)
         series[start:stop] = out[:, setup.time_index][:, :, series_idx].transpose(0, 2, 1)
+        if progress is not None:
+            progress(stop - start)
     return qoi, series
 
 
@@ -509,11 +513,13 @@ class SobolChunk:
             raise SensitivityError(f"{path}: not a chunk written by 'ema-uq sensitivity --chunk' ({exc})") from None
 
 
-def evaluate_chunk(setup: SensitivitySetup, design: np.ndarray, chunk_index: int, n_chunks: int) -> SobolChunk:
-    """Evaluate one of ``n_chunks`` independent parts of ``design`` (a job of its own in a workflow)."""
+def evaluate_chunk(setup: SensitivitySetup, design: np.ndarray, chunk_index: int, n_chunks: int,
+                   progress: Callable[[int], None] | None = None) -> SobolChunk:
+    """Evaluate one of ``n_chunks`` independent parts of ``design`` (a job of its own in a
+    workflow); ``progress`` as in :func:`evaluate`."""
     start, stop = chunk_rows(design.shape[0], chunk_index, n_chunks)
     t0 = _time.perf_counter()
-    qoi, series = evaluate(setup, design[start:stop])
+    qoi, series = evaluate(setup, design[start:stop], progress)
     return SobolChunk(setup.concept, setup.digest(), chunk_index, n_chunks, start, stop, setup.qoi_names,
                       qoi, series, _time.perf_counter() - t0)
 
@@ -717,11 +723,11 @@ def analyze_design(setup: SensitivitySetup, qoi_values: np.ndarray, series: np.n
     )
 
 
-def run(setup: SensitivitySetup) -> SobolResult:
-    """The whole study in one process: design, evaluation, analysis."""
+def run(setup: SensitivitySetup, progress: Callable[[int], None] | None = None) -> SobolResult:
+    """The whole study in one process: design, evaluation, analysis; ``progress`` as in :func:`evaluate`."""
     design = setup.design()
     t0 = _time.perf_counter()
-    qoi_values, series = evaluate(setup, design)
+    qoi_values, series = evaluate(setup, design, progress)
     return analyze_design(setup, qoi_values, series, evaluation_time_s=_time.perf_counter() - t0)
 
 

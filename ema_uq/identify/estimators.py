@@ -8,6 +8,7 @@ hold R at its current estimate while computing a step ("relaxation strategy").
 from __future__ import annotations
 
 import time
+from typing import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -230,6 +231,7 @@ def estimate(
     settings: Settings = Settings(),
     seed: int | None = None,
     unidentifiable: str = "error",
+    progress: Callable[[int, str], None] | None = None,
 ) -> FitResult:
     """Maximum-likelihood estimate of the free parameters of ``problem``.
 
@@ -241,6 +243,8 @@ def estimate(
     the start (singular information matrix): ``"error"`` raises :class:`SingularInformationError`
     naming the direction; ``"fix"`` holds the undetermined parameters at their start values,
     estimates the rest and reports the identifiable combinations (:mod:`.reduction`).
+
+    ``progress``: called after every accepted iteration with its number and a one-line state.
     """
     if method not in ("gn", "lm"):
         raise IdentificationError(f"unknown method {method!r}; choose gn (Gauss-Newton) or lm (Levenberg-Marquardt)")
@@ -250,7 +254,8 @@ def estimate(
     if unidentifiable == "fix":
         from .reduction import estimate_holding_unidentifiable
 
-        return estimate_holding_unidentifiable(problem, method=method, start=start, settings=settings, seed=seed)
+        return estimate_holding_unidentifiable(problem, method=method, start=start, settings=settings, seed=seed,
+                                               progress=progress)
     params = problem.parameters
     start = params.nominal if start is None else np.asarray(start, dtype=float)
     params.check_within_bounds(start, what="start value")
@@ -291,6 +296,8 @@ def estimate(
         change = _relative_change(state, new, problem.n_samples)
         state = new
         _record(history, iteration, state, problem, counter, relative_change=change, **extra)
+        if progress is not None:
+            progress(iteration, f"log det R {state.log_det_r:.6g}, |dJ/J| {change:.2e}, {counter.n} simulations")
         if change < settings.tolerance:
             converged, message = True, f"|dJ/J| = {change:.2e} < {settings.tolerance:g}"
             break
