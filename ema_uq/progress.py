@@ -48,7 +48,7 @@ class Progress:
         now = time.perf_counter()
         if now - self._last >= LOG_EVERY_S:
             self._last = now
-            self._line(note)
+            self._line(note, now)
 
     def close(self) -> None:
         if not self.enabled:
@@ -56,11 +56,11 @@ class Progress:
         if self._bar is not None:
             self._bar.close()
         else:
-            self._line("done")
+            self._line("done", time.perf_counter())
         self.enabled = False
 
-    def _line(self, note: str) -> None:
-        elapsed = time.perf_counter() - self._t0
+    def _line(self, note: str, now: float) -> None:
+        elapsed = now - self._t0
         print(f"{self.desc}: {self.n}/{self.total} {self.unit}s, {elapsed:.0f} s" + (f"; {note}" if note else ""),
               file=self.stream, flush=True)
 
