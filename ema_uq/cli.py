@@ -1,4 +1,4 @@
-"""The ``ema-uq`` command line (also ``python -m ema_uq``); contract in INTERFACES.md.
+"""The ``ema-uq`` command line (also ``python -m ema_uq``); contract in docs/INTERFACES.md.
 
 Each verb is one ``_add_<verb>(subparsers)`` function that registers its subparser and
 binds one ``_run_<verb>(args) -> str`` handler; adding a verb means writing that pair and

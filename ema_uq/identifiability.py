@@ -881,7 +881,7 @@ def assess_sensor_set(measurements: Sequence[Measurement], start: np.ndarray, fr
 @dataclass
 class IdentifiabilityResult:
     """The sensor-set study: one :class:`SensorSetResult` per set; the first is the primary
-    one whose fields fill the top level of IDENT.json (INTERFACES.md)."""
+    one whose fields fill the top level of IDENT.json (docs/INTERFACES.md)."""
 
     concept: str
     sets: dict[str, SensorSetResult]
