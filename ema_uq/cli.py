@@ -620,6 +620,7 @@ def _run_identifiability(args: argparse.Namespace) -> str:
         counts = [sum(v[0] == verdict for v in r.verdicts.values()) for verdict in ident.VERDICTS]
         parts.append(f"{name}: rank {r.info.rank}/{len(r.names)}, {counts[0]} identifiable, "
                      f"{counts[1]} practically and {counts[2]} structurally non-identifiable")
+    parts += [f"{name} skipped ({why})" for name, why in result.skipped.items()]
     return f"wrote {args.out}: {model.name} " + "; ".join(parts)
 
 

@@ -285,3 +285,17 @@ def test_complete_sensor_set_study(concept):
         assert real.verdict(n) == "structurally_non_identifiable", n
         assert real.max_pair_collinearity(n)[0] > 20
     assert len(real.combinations) == 2 and all(c["structural"] for c in real.combinations)
+
+
+def test_sensor_sets_whose_channels_the_data_lacks_are_skipped_and_named():
+    model = get_model("htls")
+    rig = list(model.sensor_sets["realistic"])
+    data = [synthesize("htls", deploy_retract(), noise=0.02, seed=1).select(rig)]
+    study = ident.sensor_set_study(data, model.parameters.nominal, ["J", "k_n"], ("full", "realistic"),
+                                   profile_names=[])
+    assert list(study.sets) == ["realistic"]
+    assert "Omega_TP1" in study.skipped["full"] and "not in the data" in study.skipped["full"]
+    assert study.to_json()["skipped_sensor_sets"] == study.skipped
+    assert "sensor set full skipped" in study.summary()
+    with pytest.raises(ident.IdentifiabilityError, match="no sensor set can be assessed.*give --channels"):
+        ident.sensor_set_study(data, model.parameters.nominal, ["J"], ("full",), profile_names=[])
