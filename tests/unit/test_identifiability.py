@@ -262,6 +262,12 @@ def test_identifiability_verb(tmp_path, capsys):
     args[args.index("realistic")] = "full"
     assert cli.main(args) == 2
     assert "channel(s) Omega_TP1" in capsys.readouterr().err
+    # without --sensor-sets the defaults are full and realistic: full cannot be assessed on rig data
+    i = args.index("--sensor-sets")
+    del args[i:i + 2]
+    assert cli.main(args) == 0
+    assert "full skipped (channel(s) Omega_TP1" in capsys.readouterr().out
+    assert list(json.loads(out.read_text())["skipped_sensor_sets"]) == ["full"]
 
 
 # --------------------------------------------------------------------------------------
