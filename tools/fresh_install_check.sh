@@ -33,8 +33,10 @@ grep -iE '^(pytest|numpy|scipy|numba|xarray|arviz|emcee|salib|matplotlib|snakema
 
 step "python -m pytest"
 start=$SECONDS
-python -m pytest -q -p no:cacheprovider 2>&1 | tee "$work/pytest.log" | tail -15
+set +e
+python -m pytest -q -p no:cacheprovider --durations=15 2>&1 | tee "$work/pytest.log" | tail -40
 status=${PIPESTATUS[0]}
+set -e
 echo "test suite: exit $status, $((SECONDS - start)) s wall"
 [ "$status" -eq 0 ] || exit "$status"
 
