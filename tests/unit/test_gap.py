@@ -580,7 +580,13 @@ def test_self_check_report_section_and_confusion_figure(tmp_path):
     assert fig.axes[0].get_ylabel() == "truth family"
     io.write_json(tmp_path / "selfcheck.json", data)
     text = _selfcheck_section(tmp_path)
-    assert "data:image/png;base64" in text and "NOT met" in text and "backlash_variant" in text
+    # one case per score: every 95 % interval straddles its target, so none is judged either way
+    assert "data:image/png;base64" in text and "backlash_variant" in text
+    assert text.count("not shown: n too small for the target") == 3 and "met<" not in text
+    from ema_uq.report.html import _judged
+
+    assert "NOT met" in _judged(0.5, 0.8, 0.9, "≥") and ">met<" in _judged(0.91, 1.0, 0.9, "≥")
+    assert ">met<" in _judged(0.0, 0.049, 0.05, "≤") and "NOT met" in _judged(0.06, 0.2, 0.05, "≤")
 
 
 def test_one_real_self_check_case_is_diagnosed_blind():
