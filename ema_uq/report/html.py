@@ -430,8 +430,12 @@ def _gap_section(study: dict, results: Path) -> str:
     if gap.get("selected"):
         parts.append(f"<p>Effects kept by forward selection: {html.escape(' + '.join(gap['selected']))}.</p>")
     ledger = results / "gap_ledger.png"
+    parts.append("<h3>Gap ledger</h3>")
     if ledger.exists():
-        parts += ["<h3>Gap ledger</h3>", _png_file(ledger, "gap ledger")]
+        parts.append(_png_file(ledger, "gap ledger"))
+    else:
+        parts.append('<p class="muted">No ledger figure: the gap stage wrote none (ema-uq gap --figure '
+                     'gap_ledger.png draws it).</p>')
     return "\n".join(parts)
 
 
