@@ -571,13 +571,14 @@ def _summary_section(study: dict, results: Path, fits: dict) -> str:
         table = post.summary()
         items.append(f"Posterior: max R-hat {_fmt(float(table['r_hat'].max()), 4)}, min bulk ESS "
                      f"{float(table['ess_bulk'].min()):.0f}, converged "
-                     + ("yes" if post.converged else '<span class="flag">no</span>') + ".")
+                     + ("yes" if post.converged else '<span class="flag">no</span> ('
+                        + html.escape(str(post.attrs.get("stop_reason", "step cap reached"))) + ")") + ".")
     sobol = _read(results, "sobol.json")
     if sobol and "cost" in sobol["qoi"]:
-        st = sobol["qoi"]["cost"]["ST"]
+        st, conf = sobol["qoi"]["cost"]["ST"], sobol["qoi"]["cost"].get("ST_conf", {})
         top = sorted(st, key=lambda n: -st[n])[:3]
-        items.append("Sobol, largest total indices of the det R cost: "
-                     + ", ".join(f"{html.escape(n)} {_fmt(st[n], 2)}" for n in top) + ".")
+        items.append("Sobol, largest total indices of the det R cost (± 95 % interval): "
+                     + ", ".join(f"{html.escape(n)} {_pm(st[n], conf.get(n), 2)}" for n in top) + ".")
     if not items:
         return '<p class="muted">No stage has written results yet.</p>'
     return "<ul>" + "".join(f"<li>{i}</li>" for i in items) + "</ul>"
