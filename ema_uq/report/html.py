@@ -242,7 +242,8 @@ def _posterior_section(study: dict, results: Path) -> str:
                    f"largest |ρ| down); not shown: {html.escape(', '.join(left_out))} (their marginals are in the "
                    "table and the traces). Black crosses: the ML estimate.</p>")
     parts += ["<h3>Traces</h3>",
-              "<p>Per parameter: the marginal density of each ensemble (left) and its kept draws (right).</p>",
+              "<p>Per parameter: the marginal density of each ensemble (left) and its kept draws (right); ArviZ calls "
+              "the ensembles chains 0, 1, ….</p>",
               _img(bayes_figures.trace(post), "trace plots"),
               "<h3>Corner plot</h3>", corner_note, _img(bayes_figures.pair(post, names=shown), "corner plot")]
     parts.append("<h3>Posterior predictive check</h3>")
@@ -342,7 +343,7 @@ def _identifiability_section(study: dict, results: Path) -> str:
             if t["verdict"] != "identifiable":
                 verdict = f'<span class="flag">{verdict}</span>'
             row += [_fmt(t["crb_std"], 2), ci_text,
-                    f"{_fmt(t['collinearity'], 3)} ({html.escape(str(t.get('most_collinear_with') or '–'))})", verdict]
+                    f"{_gamma(t['collinearity'])} ({html.escape(str(t.get('most_collinear_with') or '–'))})", verdict]
         cost = sobol["qoi"].get("cost", {}) if sobol else {}
         st, st_conf = cost.get("ST", {}).get(n), cost.get("ST_conf", {}).get(n)
         ratio = None
@@ -356,6 +357,15 @@ def _identifiability_section(study: dict, results: Path) -> str:
               "width relative to the Cramér-Rao σ (fit channels of the study).</p>",
               _table(header, rows)]
     return "\n".join(parts)
+
+
+def _gamma(value: float | None) -> str:
+    """A Brun collinearity index; the analysis caps an exactly collinear pair at GAMMA_CAP."""
+    from ..identifiability import GAMMA_CAP
+
+    if value is not None and np.isfinite(value) and value >= GAMMA_CAP:
+        return "≥ 10<sup>12</sup> (exactly collinear)"
+    return _fmt(value, 2)
 
 
 def _png_file(path: Path, alt: str) -> str:
