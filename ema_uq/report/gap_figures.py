@@ -93,7 +93,7 @@ def gap_ledger(result):
     shrink = "" if g.get("shrink") is None else (
         f", shrink {g['shrink']:.2f}" + (f" ± {g['shrink_se']:.2f}" if g.get("shrink_se") is not None else ""))
     fig.suptitle(f"Gap ledger, {result.concept}: {verdict}; held-out systematic NRMSE (scoring part) "
-                 f"{before:.2g} -> {after:.2g}{shrink}", fontsize=10)
+                 f"{before:.3g} -> {after:.3g}{shrink}", fontsize=10)
     return fig
 
 
