@@ -858,13 +858,21 @@ def _add_report(subparsers) -> None:
 def _run_report(args: argparse.Namespace) -> str:
     from pathlib import Path
 
-    from .report import build_report
+    import time
+
+    from .report import build_report, html
     from .study import load_study
 
     study = load_study(args.study)
     if not Path(args.results).is_dir():
         raise CLIError(f"results folder {args.results} does not exist; run the workflow first")
-    text = build_report(study, args.study, args.results)
+    t0 = time.perf_counter()
+    html.PROGRESS = lambda line: print(f"{PROG} report: {line}, {time.perf_counter() - t0:.0f} s",
+                                       file=sys.stderr, flush=True)
+    try:
+        text = build_report(study, args.study, args.results)
+    finally:
+        html.PROGRESS = None
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(text, encoding="utf-8")
@@ -973,7 +981,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.verb in SIMULATING_VERBS:
             from .progress import first_compile_notice
 
-            first_compile_notice()
+            first_compile_notice(("simulate", "gap.variants") if args.verb == "gap-selfcheck" else ("simulate",))
         summary = args.handler(args)
     except (ValueError, OSError) as exc:
         if args.traceback:

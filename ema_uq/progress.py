@@ -50,12 +50,14 @@ class Progress:
             self._last = now
             self._line(note, now)
 
-    def close(self) -> None:
+    def close(self, failed: bool = False) -> None:
+        """End the bar, or print the final line; a stage that ``failed`` ends silently, so its
+        error stays the one line on stderr."""
         if not self.enabled:
             return
         if self._bar is not None:
             self._bar.close()
-        else:
+        elif not failed:
             self._line("done", time.perf_counter())
         self.enabled = False
 
@@ -67,8 +69,8 @@ class Progress:
     def __enter__(self) -> "Progress":
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, exc_type, *exc) -> None:
+        self.close(failed=exc_type is not None)
 
 
 def _is_terminal(stream: TextIO) -> bool:
@@ -90,15 +92,16 @@ def compiled_kernels_cached(module_file: str | Path) -> bool:
     return bool(indexes) and min(p.stat().st_mtime for p in indexes) >= source.stat().st_mtime
 
 
-def first_compile_notice(stream: TextIO | None = None) -> bool:
+def first_compile_notice(modules: tuple[str, ...] = ("simulate",), stream: TextIO | None = None) -> bool:
     """Say, in one line, that the simulator's kernels are compiled now (about a minute, once per
     installation and source change) when numba has no cached copy of them; True when said.
+    ``modules``: the package's modules (dotted, below ``ema_uq``) whose kernels the verb runs.
     The model and effect equations are inlined into these kernels, so their cache is the one
     that counts; a new effect combination still compiles a specialisation of its own later."""
     import importlib
 
     # the package's namespace holds a function named simulate, so the modules are imported by path
-    modules = [importlib.import_module(f"ema_uq.{name}") for name in ("simulate", "gap.variants")]
+    modules = [importlib.import_module(f"ema_uq.{name}") for name in modules]
     missing = [m for m in modules if not compiled_kernels_cached(m.__file__)]
     if not missing:
         return False

@@ -89,8 +89,15 @@ def _round(x: float, decimals: int) -> str:
     return f"{round(x, decimals):.0f}"
 
 
+#: called with a line after every figure drawn (the report stage's progress; None: silent)
+PROGRESS = None
+
+
 def _img(fig, alt: str) -> str:
-    return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{figures.to_png_base64(fig)}">'
+    text = f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{figures.to_png_base64(fig)}">'
+    if PROGRESS is not None:
+        PROGRESS(f"drew {alt}")
+    return text
 
 
 SYNTHETIC_CONCEPTS = ("htls", "lths")

@@ -38,3 +38,13 @@ def test_compile_notice_follows_the_cache_of_the_source(tmp_path):
 
     os.utime(source, (index.stat().st_mtime + 10,) * 2)     # source edited after compilation
     assert not pg.compiled_kernels_cached(source)
+
+
+def test_a_failed_stage_ends_without_a_final_line():
+    out = io.StringIO()
+    try:
+        with pg.Progress(3, "stage", stream=out):
+            raise ValueError("bad input")
+    except ValueError:
+        pass
+    assert out.getvalue() == ""
