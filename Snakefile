@@ -4,9 +4,9 @@
 # ema_uq.study.settings_for. The study file is never an input: the rule carries those same
 # settings as its `settings` param, so a changed study value re-runs exactly the rules whose
 # verb reads it.
-# `snakemake --lint` asks for a conda environment per rule: the software is the package
-# itself, installed once by `pip install -e .` (pyproject.toml pins its dependencies), so
-# every rule shares that one environment and none is declared.
+# Every rule declares the one conda environment envs/ema_uq.yaml (the package with the
+# dependencies of pyproject.toml): `snakemake --use-conda` builds it, a plain `snakemake`
+# runs in the environment where `pip install -e .` put the package.
 import json
 import sys
 from importlib import resources
@@ -17,6 +17,8 @@ from ema_uq.io import CRANFIELD_FILES, cranfield_file, emps_files
 from ema_uq.study import DATA_ROLES, load_study, settings_for
 
 configfile: "config/config.yaml"
+
+CONDA_ENV = "envs/ema_uq.yaml"
 
 
 def _number(text):
@@ -135,6 +137,8 @@ rule compile:
     resources:
         mem_mb=2000,
         runtime=20,
+    conda:
+        CONDA_ENV
     shell:
         "ema-uq compile --concept {params.concepts} --out {output} > {log} 2>&1"
 
@@ -156,6 +160,8 @@ rule simulate:
     resources:
         mem_mb=1000,
         runtime=5,
+    conda:
+        CONDA_ENV
     shell:
         "ema-uq simulate --concept {params.concept} --study {params.study_file} --role {wildcards.role} "
         "--out {output} > {log} 2>&1"
@@ -179,6 +185,8 @@ rule identify:
     resources:
         mem_mb=2000,
         runtime=15,
+    conda:
+        CONDA_ENV
     shell:
         "ema-uq identify {input.estimation} --concept {params.concept} --study {params.study_file} "
         "--method {wildcards.method} --validate {input.validation} --out {output} > {log} 2>&1"
@@ -203,9 +211,11 @@ rule sample:
     resources:
         mem_mb=4000,
         runtime=60,
+    conda:
+        CONDA_ENV
     shell:
         "ema-uq sample {input.estimation} --concept {params.concept} --study {params.study_file} "
-        "--init {input.fit} --quiet --replace-stale-backend --backend results/{wildcards.study}/posterior.h5 --out {output} > {log} 2>&1"
+        "--init {input.fit} --replace-stale-backend --backend results/{wildcards.study}/posterior.h5 --out {output} > {log} 2>&1"
 
 
 rule sensitivity_chunk:
@@ -225,6 +235,8 @@ rule sensitivity_chunk:
     resources:
         mem_mb=2000,
         runtime=30,
+    conda:
+        CONDA_ENV
     shell:
         "ema-uq sensitivity --concept {params.concept} --study {params.study_file} "
         "--chunk {wildcards.chunk}/{params.n_chunks} --out {output} > {log} 2>&1"
@@ -247,6 +259,8 @@ rule sensitivity:
     resources:
         mem_mb=2000,
         runtime=10,
+    conda:
+        CONDA_ENV
     shell:
         "ema-uq sensitivity --concept {params.concept} --study {params.study_file} --gather {input} "
         "--out {output} > {log} 2>&1"
@@ -271,6 +285,8 @@ rule identifiability:
     resources:
         mem_mb=3000,
         runtime=60,
+    conda:
+        CONDA_ENV
     shell:
         "ema-uq identifiability {input.estimation} --concept {params.concept} --init {input.fit} "
         "--study {params.study_file} --out {output} > {log} 2>&1"
@@ -296,6 +312,8 @@ rule gap:
     resources:
         mem_mb=3000,
         runtime=30,
+    conda:
+        CONDA_ENV
     shell:
         "ema-uq gap {input.estimation} --concept {params.concept} --study {params.study_file} "
         "--validate {input.validation} --figure {output.ledger} --out {output.result} > {log} 2>&1"
@@ -327,6 +345,8 @@ rule gap_selfcheck_case:
     resources:
         mem_mb=3000,
         runtime=240,
+    conda:
+        CONDA_ENV
     shell:
         "ema-uq gap-selfcheck --study {params.study_file} --chunk {wildcards.chunk}/{params.chunks} "
         "--jobs 1 --out {output} > {log} 2>&1"
@@ -346,6 +366,8 @@ rule gap_selfcheck:
     resources:
         mem_mb=1000,
         runtime=5,
+    conda:
+        CONDA_ENV
     shell:
         "ema-uq gap-selfcheck --gather {input} --out {output} > {log} 2>&1"
 
@@ -367,6 +389,8 @@ rule fault_diagnosis:
     resources:
         mem_mb=2000,
         runtime=15,
+    conda:
+        CONDA_ENV
     shell:
         "ema-uq fault-diagnosis --study {params.study_file} --out {output} > {log} 2>&1"
 
@@ -385,6 +409,8 @@ rule report:
     resources:
         mem_mb=2000,
         runtime=10,
+    conda:
+        CONDA_ENV
     shell:
         "ema-uq report --study {input.study} --results results/{wildcards.study} --out {output} > {log} 2>&1"
 
@@ -419,6 +445,8 @@ rule sbc_replicate:
     resources:
         mem_mb=SBC.get("mem_mb", 3000),
         runtime=SBC.get("runtime", 240),
+    conda:
+        CONDA_ENV
     shell:
         "NUMBA_NUM_THREADS={threads} ema-uq sbc --study {input.study} --replicate {wildcards.replicate} --seed {params.seed} "
         "--draws {params.draws} --prior-spread {params.prior_spread} --backend results/sbc/{wildcards.study}/replicate_{wildcards.replicate}.h5 "
@@ -439,5 +467,7 @@ rule sbc_gather:
     resources:
         mem_mb=1000,
         runtime=5,
+    conda:
+        CONDA_ENV
     shell:
         "ema-uq sbc --gather {input} --bins {params.bins} --out {output.result} --figure {output.figure} > {log} 2>&1"

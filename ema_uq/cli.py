@@ -1,4 +1,4 @@
-"""The ``ema-uq`` command line (also ``python -m ema_uq``); contract in INTERFACES.md.
+"""The ``ema-uq`` command line (also ``python -m ema_uq``); contract in docs/INTERFACES.md.
 
 Each verb is one ``_add_<verb>(subparsers)`` function that registers its subparser and
 binds one ``_run_<verb>(args) -> str`` handler; adding a verb means writing that pair and
@@ -31,6 +31,9 @@ UNIDENTIFIABLE_MODES = ("fix", "error")
 #: named here for the same reason: ``--help`` loads neither numpy nor numba (a test keeps them equal)
 CONCEPTS = ("cranfield", "emps", "htls", "lths")
 EXPERIMENT_NAMES = ("deploy-retract", "validation")
+#: verbs that run the numba simulator: a first run compiles its kernels, and says so first
+SIMULATING_VERBS = frozenset({"simulate", "identify", "sample", "sensitivity", "identifiability", "gap",
+                              "gap-selfcheck", "fault-diagnosis"})
 EXIT_OK = 0
 EXIT_ERROR = 2
 EXIT_BUG = 3
@@ -282,8 +285,15 @@ def _run_identify(args: argparse.Namespace) -> str:
     start = theta if args.start == "nominal" else _read_fit(args.start, args.concept).estimate
     if args.perturb > 0:
         start = perturbed_start(parameters, args.perturb, args.seed, around=start)
-    fit = estimate(problem, method=args.method, start=start, seed=args.seed,
-                   settings=Settings(max_iterations=args.max_iterations), unidentifiable=args.unidentifiable)
+    from .progress import Progress
+
+    with Progress(args.max_iterations, f"{PROG} identify {args.method}", "iteration") as bar:
+        def progress(iteration: int, line: str) -> None:
+            bar.update(iteration - bar.n, line)
+
+        fit = estimate(problem, method=args.method, start=start, seed=args.seed,
+                       settings=Settings(max_iterations=args.max_iterations), unidentifiable=args.unidentifiable,
+                       progress=progress)
     fit.provenance = provenance(args.data + args.validate, seed=args.seed,
                                 settings={k: v for k, v in vars(args).items() if k != "handler"})
     out = fit.to_json()
@@ -410,12 +420,15 @@ def _run_sample(args: argparse.Namespace) -> str:
                                n_predictive=args.predictive, defensive_weight=args.defensive,
                                integrator=args.integrator)
 
+    from .progress import Progress
+
     def progress(line: str) -> None:
         print(f"{PROG} sample: {line}", file=sys.stderr, flush=True)
 
-    result = sample(problem, fit, priors=priors, noise_sigma=args.noise_sigma, settings=settings, seed=args.seed,
-                    backend=backend, progress=None if args.quiet else progress,
-                    replace_stale_backend=args.replace_stale_backend)
+    with Progress(settings.max_steps, f"{PROG} sample", "step", enabled=not args.quiet) as bar:
+        result = sample(problem, fit, priors=priors, noise_sigma=args.noise_sigma, settings=settings, seed=args.seed,
+                        backend=backend, progress=None if args.quiet else progress,
+                        steps=lambda n: bar.update(n - bar.n), replace_stale_backend=args.replace_stale_backend)
     result.to_netcdf(out)
     table = result.summary()
     return (f"wrote {out}: {model.name} posterior of {len(result.names)} parameters, "
@@ -483,9 +496,13 @@ def _run_sensitivity(args: argparse.Namespace) -> str:
     io.prepare_output(out)
     design = settings_for(study, "sensitivity")["design"]
     setup = sobol.setup_from_study({"concept": study["concept"], **design}, n_base=args.n_base)
+    from .progress import Progress
+
     if args.chunk is not None:
         index, total = args.chunk
-        chunk = sobol.evaluate_chunk(setup, setup.design(), index, total)
+        start, stop = sobol.chunk_rows(setup.n_evaluations, index, total)
+        with Progress(stop - start, f"{PROG} sensitivity chunk {index}/{total}", "run") as bar:
+            chunk = sobol.evaluate_chunk(setup, setup.design(), index, total, bar.update)
         chunk.save(out)
         rate = (chunk.stop - chunk.start) / chunk.wall_time_s if chunk.wall_time_s > 0 else float("nan")
         return (f"wrote {out}: {setup.concept} Sobol chunk {index}/{total}, runs {chunk.start}..{chunk.stop - 1} "
@@ -494,7 +511,8 @@ def _run_sensitivity(args: argparse.Namespace) -> str:
         result = sobol.analyze_chunks(setup, [sobol.SobolChunk.load(path) for path in args.gather])
         inputs = list(args.gather)
     else:
-        result = sobol.run(setup)
+        with Progress(setup.n_evaluations, f"{PROG} sensitivity", "run") as bar:
+            result = sobol.run(setup, bar.update)
         inputs = []
     result.provenance = provenance([args.study, *inputs], seed=setup.seed,
                                    settings={"study": study.get("sensitivity"), "n_base": setup.n_base})
@@ -592,6 +610,7 @@ def _run_identifiability(args: argparse.Namespace) -> str:
         counts = [sum(v[0] == verdict for v in r.verdicts.values()) for verdict in ident.VERDICTS]
         parts.append(f"{name}: rank {r.info.rank}/{len(r.names)}, {counts[0]} identifiable, "
                      f"{counts[1]} practically and {counts[2]} structurally non-identifiable")
+    parts += [f"{name} skipped ({why})" for name, why in result.skipped.items()]
     return f"wrote {args.out}: {model.name} " + "; ".join(parts)
 
 
@@ -862,13 +881,21 @@ def _add_report(subparsers) -> None:
 def _run_report(args: argparse.Namespace) -> str:
     from pathlib import Path
 
-    from .report import build_report
+    import time
+
+    from .report import build_report, html
     from .study import load_study
 
     study = load_study(args.study)
     if not Path(args.results).is_dir():
         raise CLIError(f"results folder {args.results} does not exist; run the workflow first")
-    text = build_report(study, args.study, args.results)
+    t0 = time.perf_counter()
+    html.PROGRESS = lambda line: print(f"{PROG} report: {line}, {time.perf_counter() - t0:.0f} s",
+                                       file=sys.stderr, flush=True)
+    try:
+        text = build_report(study, args.study, args.results)
+    finally:
+        html.PROGRESS = None
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(text, encoding="utf-8")
@@ -1068,6 +1095,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         _apply_study(args, _given_options(argv))
+        if args.verb in SIMULATING_VERBS:
+            from .progress import first_compile_notice
+
+            first_compile_notice(("simulate.integrators", "gap.variants") if args.verb == "gap-selfcheck"
+                                 else ("simulate.integrators",))
         summary = args.handler(args)
     except (EmaUqError, *FILE_ACCESS_ERRORS) as exc:
         if args.traceback:

@@ -108,7 +108,7 @@ def _flap_experiment(name, knots_deg, duration, f_base, f_slope, split1) -> Expe
 
 
 def deploy_retract() -> Experiment:
-    """The identification run of MODEL_SPEC: 38 s, 3800 samples, deploy to 20° and 35°, retract."""
+    """The identification run of docs/MODEL_SPEC.md: 38 s, 3800 samples, deploy to 20° and 35°, retract."""
     return _flap_experiment(
         "deploy-retract",
         [(0, 0), (1, 0), (9, 20), (13, 20), (19, 35), (24, 35), (34, 0), (38, 0)],
@@ -219,7 +219,7 @@ def noise_std(clean: np.ndarray, fraction: float) -> np.ndarray:
 
 
 def add_noise(clean: np.ndarray, fraction: float, rng: np.random.Generator) -> np.ndarray:
-    """Independent Gaussian white noise, per channel ``fraction`` × RMS (MODEL_SPEC section 4)."""
+    """Independent Gaussian white noise, per channel ``fraction`` × RMS (docs/MODEL_SPEC.md, section 4)."""
     sigma = noise_std(clean, fraction)
     return clean + rng.standard_normal(clean.shape) * sigma
 

@@ -2,7 +2,7 @@
 
 - the output-error likelihood: residual covariance R, log det R and the objective
   V = (N/2) log det R + ½ Σ_j ((θ_j - θ_j,rig) / σ_j,rig)² (negative log-likelihood
-  concentrated over R, with the rig pseudo-measurements of MODEL_SPEC);
+  concentrated over R, with the rig pseudo-measurements of docs/MODEL_SPEC.md);
 - residual whiteness: lagged normalised correlations and the Ljung-Box test;
 - operating regimes of a speed signal (rest, motion and its direction, acceleration), the
   generic part of every concept's regime masks;

@@ -130,6 +130,17 @@ def _check_uq_sections(study: dict, model, source: str) -> None:
                                  f"{ch!r} for {model.name}")
 
 
+def _yaml_error(path: Path, exc: yaml.YAMLError) -> str:
+    """One line naming where a study file stops being YAML: line and column (1-based, as an
+    editor counts them) of the problem, what PyYAML found there, and what to do."""
+    mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
+    problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+    context = getattr(exc, "context", None)
+    where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+    return (f"{path}: not valid YAML at {where}{problem}" + (f" ({context})" if context else "")
+            + "; fix the indentation, quotes or brackets there")
+
+
 def load_study(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     try:
@@ -137,7 +148,7 @@ def load_study(path: str | Path) -> dict[str, Any]:
     except FileNotFoundError:
         raise StudyError(f"study file {path} does not exist") from None
     except yaml.YAMLError as exc:
-        raise StudyError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+        raise StudyError(_yaml_error(path, exc)) from None
     if not isinstance(raw, dict):
         raise StudyError(f"{path}: a study must be a mapping of keys to values")
     return validate_study(raw, source=str(path))

@@ -1,4 +1,4 @@
-"""Independent plain-Python reference of the two EMA concepts of MODEL_SPEC.md.
+"""Independent plain-Python reference of the two EMA concepts of docs/MODEL_SPEC.md.
 
 Written from the specification only (not from ``ema_uq.models``) so that it can check the
 compiled simulator. States carry the motor angle theta as last entry, as the package does:

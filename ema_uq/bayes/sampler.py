@@ -48,6 +48,7 @@ def sample(
     seed: int = 0,
     backend: str | os.PathLike | None = None,
     progress: Callable[[str], None] | None = None,
+    steps: Callable[[int], None] | None = None,
     predictive: bool = True,
     replace_stale_backend: bool = False,
 ) -> PosteriorResult:
@@ -65,6 +66,8 @@ def sample(
     seed : seeds start positions, every ensemble's emcee RandomState and the predictive draws.
     backend : HDF5 file; an existing file of the same run is resumed. None: in memory.
     progress : called with one line of text at every check.
+    steps : called with the number of steps every ensemble has reached, after each advance
+        (a progress bar's counter; the checks come every ``settings.check_every`` steps).
     predictive : simulate the posterior predictive subsample.
     replace_stale_backend : a ``backend`` file of another run (other data or settings) is
         moved aside to ``<stem>.stale.h5`` instead of refused.
@@ -72,7 +75,7 @@ def sample(
     t0 = time.perf_counter()
     run = _prepare(problem, fit, priors, noise_sigma, settings, seed)
     ensembles = _Ensembles.open(run, backend, replace_stale_backend, progress)
-    outcome = _run_until_stop(run, ensembles, t0, progress)
+    outcome = _run_until_stop(run, ensembles, t0, progress, steps)
     return _result(run, ensembles, outcome, predictive, t0)
 
 
@@ -319,8 +322,8 @@ def _pilot_length(settings: SamplerSettings) -> int:
     return 0
 
 
-def _run_until_stop(run: _Run, ensembles: _Ensembles, t0: float, progress: Callable[[str], None] | None
-                    ) -> _Outcome:
+def _run_until_stop(run: _Run, ensembles: _Ensembles, t0: float, progress: Callable[[str], None] | None,
+                    steps: Callable[[int], None] | None = None) -> _Outcome:
     """Advance the ensembles check by check until the stopping rule holds or the step cap is
     reached. The proposal is adapted once at the end of the pilot and then frozen; the
     stopping rule and the export see only the steps after it (all before it are burn-in)."""
@@ -331,6 +334,8 @@ def _run_until_stop(run: _Run, ensembles: _Ensembles, t0: float, progress: Calla
     while True:
         n = min(n + settings.check_every, settings.max_steps, adapt if n < adapt else settings.max_steps)
         ensembles.advance(n)
+        if steps is not None:
+            steps(n)
         if n == adapt:
             mean, cov, widening = _end_pilot(run, ensembles, adapt, t0, progress)
             first = adapt

@@ -151,19 +151,35 @@ def sensor_set_study(measurements: Sequence[Measurement], start: np.ndarray, fre
                      sets: Sequence[str | Mapping[str, Any]] = ("full", "realistic"), *,
                      settings: ProfileSettings = ProfileSettings(), profile_names: Sequence[str] | None = None,
                      constants: np.ndarray | None = None, progress=None) -> IdentifiabilityResult:
-    """:func:`assess_sensor_set` for each sensor set, from the same start and data."""
+    """:func:`assess_sensor_set` for each sensor set, from the same start and data.
+
+    A set whose channels are not all in every record is skipped, with the reason in
+    ``IdentifiabilityResult.skipped`` (rig data has only the rig's channels, so the default
+    "full" set cannot be assessed on it); when no set is left that is an error naming the
+    channels the data has."""
     measurements = list(measurements)
     if not measurements:
         raise IdentifiabilityError("no measurement given; pass the estimation (and validation) data")
     model = get_model(measurements[0].concept)
-    results = {}
+    present = [c for c in model.outputs if all(c in m.channels for m in measurements)]
+    results, skipped = {}, {}
     for item in sets:
         name, channels = sensor_set(model, item)
-        if name in results:
+        if name in results or name in skipped:
             raise IdentifiabilityError(f"sensor set {name} given twice; name each set once")
+        missing = [c for c in channels if c not in present]
+        if missing:
+            skipped[name] = f"channel(s) {', '.join(missing)} not in the data"
+            continue
         results[name] = assess_sensor_set(measurements, start, free, channels, name=name, settings=settings,
                                           profile_names=profile_names, constants=constants, progress=progress)
-    return IdentifiabilityResult(model.name, results)
+    if not results:
+        raise IdentifiabilityError(
+            "no sensor set can be assessed on this data (" + "; ".join(f"{k}: {v}" for k, v in skipped.items())
+            + f"); the data has {', '.join(present) or 'no output channel'}: give --channels with a subset of them")
+    if skipped and progress is not None:
+        progress("skipped " + "; ".join(f"sensor set {k}: {v}" for k, v in skipped.items()))
+    return IdentifiabilityResult(model.name, results, skipped=skipped)
 
 
 # --------------------------------------------------------------------------------------

@@ -140,7 +140,7 @@ class SensorSetResult:
 @dataclass
 class IdentifiabilityResult:
     """The sensor-set study: one :class:`SensorSetResult` per set; the first is the primary
-    one whose fields fill the top level of IDENT.json (INTERFACES.md)."""
+    one whose fields fill the top level of IDENT.json (docs/INTERFACES.md)."""
 
     concept: str
     sets: dict[str, SensorSetResult]
@@ -148,6 +148,8 @@ class IdentifiabilityResult:
     provenance: dict[str, Any] = field(default_factory=dict)
     #: None: assessed around a fit; else the point assessed without one ("nominal" or a file)
     at: str | None = None
+    #: sensor sets asked for but not assessed -> why (their channels are not all in the data)
+    skipped: dict[str, str] = field(default_factory=dict)
 
     @property
     def primary(self) -> SensorSetResult:
@@ -160,6 +162,7 @@ class IdentifiabilityResult:
 
     def summary(self) -> str:
         lines = [f"[[Identifiability: {self.concept}, sensor sets {', '.join(self.sets)}]]"]
+        lines += [f"    sensor set {name} skipped: {why}" for name, why in self.skipped.items()]
         for r in self.sets.values():
             lines.append(r.summary())
         lines.append("[[Verdicts per sensor set]]")
@@ -184,6 +187,7 @@ class IdentifiabilityResult:
             "correlation": primary["correlation"],
             "collinearity": primary["collinearity"],
             "sensor_sets": sets,
+            "skipped_sensor_sets": dict(self.skipped),
             "comparison": self.comparison(),
             "profile_threshold": PROFILE_THRESHOLD,
             "n_simulations": int(sum(r.n_simulations for r in self.sets.values())),

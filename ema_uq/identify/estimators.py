@@ -8,6 +8,7 @@ hold R at its current estimate while computing a step ("relaxation strategy").
 from __future__ import annotations
 
 import time
+from typing import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -223,7 +224,8 @@ def perturbed_start(parameters, fraction: float, seed: int, around: np.ndarray |
 
 
 def maximum_likelihood(problem: FitProblem, *, method: str = "gn", start: np.ndarray | None = None,
-                       settings: Settings = Settings(), seed: int | None = None) -> FitResult:
+                       settings: Settings = Settings(), seed: int | None = None,
+                       progress: Callable[[int, str], None] | None = None) -> FitResult:
     """Maximum-likelihood estimate of every free parameter of ``problem``.
 
     ``start`` is a full parameter vector (default: the set's nominal values) and must lie
@@ -232,6 +234,8 @@ def maximum_likelihood(problem: FitProblem, *, method: str = "gn", start: np.nda
     every free parameter at the start (singular information matrix) it raises
     :class:`SingularInformationError` naming the direction; :func:`ema_uq.identify.estimate`
     chooses between that and holding the undetermined parameters (:mod:`.reduction`).
+
+    ``progress``: called after every accepted iteration with its number and a one-line state.
     """
     if method not in METHODS:
         raise IdentificationError(f"unknown method {method!r}; choose gn (Gauss-Newton) or lm (Levenberg-Marquardt)")
@@ -275,6 +279,8 @@ def maximum_likelihood(problem: FitProblem, *, method: str = "gn", start: np.nda
         change = _relative_change(state, new, problem.n_samples)
         state = new
         _record(history, iteration, state, problem, counter, relative_change=change, **extra)
+        if progress is not None:
+            progress(iteration, f"log det R {state.log_det_r:.6g}, |dJ/J| {change:.2e}, {counter.n} simulations")
         if change < settings.tolerance:
             converged, message = True, f"|dJ/J| = {change:.2e} < {settings.tolerance:g}"
             break

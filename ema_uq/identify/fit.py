@@ -3,6 +3,8 @@ free parameter (:mod:`.estimators`), or, when the data cannot determine them all
 holds the undetermined ones and reports the identifiable combinations (:mod:`.reduction`)."""
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 
 from .estimators import METHODS, Settings, maximum_likelihood
@@ -22,6 +24,7 @@ def estimate(
     settings: Settings = Settings(),
     seed: int | None = None,
     unidentifiable: str = "error",
+    progress: Callable[[int, str], None] | None = None,
 ) -> FitResult:
     """Maximum-likelihood estimate of the free parameters of ``problem``.
 
@@ -34,6 +37,8 @@ def estimate(
     :class:`~ema_uq.identify.SingularInformationError` naming the direction; ``"fix"`` holds
     the undetermined parameters at their start values, estimates the rest and reports the
     identifiable combinations (:mod:`.reduction`).
+
+    ``progress``: called after every accepted iteration with its number and a one-line state.
     """
     if method not in METHODS:
         raise IdentificationError(f"unknown method {method!r}; choose gn (Gauss-Newton) or lm (Levenberg-Marquardt)")
@@ -41,4 +46,4 @@ def estimate(
         raise IdentificationError(f"unknown unidentifiable mode {unidentifiable!r}; choose "
                                   f"{' or '.join(UNIDENTIFIABLE_MODES)}")
     run = estimate_holding_unidentifiable if unidentifiable == "fix" else maximum_likelihood
-    return run(problem, method=method, start=start, settings=settings, seed=seed)
+    return run(problem, method=method, start=start, settings=settings, seed=seed, progress=progress)

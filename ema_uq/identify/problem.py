@@ -6,7 +6,7 @@ Objective minimised by both optimisers (negative log-likelihood, concentrated ov
     V(Θ) = (N/2) log det R(Θ) + ½ Σ_j ((Θ_j - Θ_j,rig) / σ_j,rig)²
 
 where R = (1/N) Σ_k e_k e_kᵀ over every complete sample of every experiment (eqs. 48-49)
-and the second sum runs over parameters with a rig pseudo-measurement (MODEL_SPEC,
+and the second sum runs over parameters with a rig pseudo-measurement (docs/MODEL_SPEC.md,
 resolved ambiguity 4). Minimising V is minimising det R when no pseudo-measurement is free.
 V, R and log det R are computed by :mod:`ema_uq.statistics`.
 """

@@ -89,14 +89,16 @@ def identifiable_combinations(problem: FitProblem, theta: np.ndarray) -> tuple[l
 
 
 def estimate_holding_unidentifiable(problem: FitProblem, *, method: str = "gn", start: np.ndarray | None = None,
-                                    settings: Settings = Settings(), seed: int | None = None) -> FitResult:
+                                    settings: Settings = Settings(), seed: int | None = None,
+                                    progress=None) -> FitResult:
     """:func:`~ema_uq.identify.estimate` that answers a singular information matrix at the start
     by holding the undetermined parameters (module docstring); a regular problem is estimated
     exactly as with ``unidentifiable="error"``."""
     t0 = time.perf_counter()
     start = problem.parameters.nominal if start is None else np.asarray(start, dtype=float)
     try:
-        fit = maximum_likelihood(problem, method=method, start=start, settings=settings, seed=seed)
+        fit = maximum_likelihood(problem, method=method, start=start, settings=settings, seed=seed,
+                                 progress=progress)
         fit.unidentifiable, fit.hold_rule = "fix", HOLD_RULE
         return fit
     except SingularInformationError as exc:
@@ -110,7 +112,8 @@ def estimate_holding_unidentifiable(problem: FitProblem, *, method: str = "gn", 
     while True:  # every pass holds one more parameter or raises
         reduced = replace(problem, parameters=problem.parameters.fixing(list(held)))
         try:
-            fit = maximum_likelihood(reduced, method=method, start=start, settings=settings, seed=seed)
+            fit = maximum_likelihood(reduced, method=method, start=start, settings=settings, seed=seed,
+                                     progress=progress)
             break
         except SingularInformationError as exc:
             spent += exc.n_simulations

@@ -1,5 +1,5 @@
 """The estimation result: estimates, Cramér-Rao bounds, correlations, flags and history,
-with an lmfit-style report and the FIT.json form of INTERFACES.md."""
+with an lmfit-style report and the FIT.json form of docs/INTERFACES.md."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field

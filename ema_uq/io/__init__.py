@@ -1,7 +1,7 @@
 """Reading and writing data files: measurements (NetCDF, CSV) and JSON result files.
 
 This is the only module that touches files. Every reader validates what it reads against
-the contract of MODEL_SPEC.md ("Data files") and raises :class:`DataFileError` with a
+the contract of docs/MODEL_SPEC.md ("Data files") and raises :class:`DataFileError` with a
 one-line message naming the file, the problem and the fix.
 
 Measured EMPS benchmark records (MATLAB ``.mat``, read-only) are read by :func:`read_emps`,

@@ -13,9 +13,6 @@ import numpy as np  # noqa: E402
 
 from ..errors import ReportError  # noqa: E402
 
-ENSEMBLE_COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")
-
-
 def _names(result, names: Sequence[str] | None, limit: int | None = None) -> list[str]:
     names = list(result.names if names is None else names)
     unknown = [n for n in names if n not in result.names]
@@ -24,105 +21,135 @@ def _names(result, names: Sequence[str] | None, limit: int | None = None) -> lis
     return names[:limit] if limit else names
 
 
-def trace(result, names: Sequence[str] | None = None, max_walkers: int = 8):
-    """Per parameter: kept draws of up to ``max_walkers`` walkers of every ensemble (left,
-    colour = ensemble) and each ensemble's marginal histogram (right)."""
-    post = result.idata.posterior
+def trace(result, names: Sequence[str] | None = None):
+    """ArviZ's trace plot: per parameter each ensemble's marginal density (left) and its kept
+    draws (right; an ensemble is one ArviZ chain, its walkers' draws concatenated, as the
+    R-hat and ESS of the report compare them)."""
+    import arviz as az
+    from matplotlib.ticker import MaxNLocator
+
     names = _names(result, names)
-    ensemble = post["ensemble"].values
-    fig, axes = plt.subplots(len(names), 2, figsize=(10, 1.6 * len(names) + 0.6), squeeze=False,
-                             gridspec_kw={"width_ratios": (3, 1)})
-    for i, name in enumerate(names):
-        values = post[name].values                     # (chain, draw)
-        unit = post[name].attrs.get("units", "")
-        for k in np.unique(ensemble):
-            color = ENSEMBLE_COLORS[int(k) % len(ENSEMBLE_COLORS)]
-            rows = values[ensemble == k]
-            for row in rows[:max_walkers]:
-                axes[i, 0].plot(row, color=color, lw=0.4, alpha=0.5)
-            axes[i, 1].hist(rows.ravel(), bins=40, density=True, histtype="step", color=color,
-                            orientation="horizontal", label=f"ensemble {k}")
-        axes[i, 0].set_ylabel(f"{name}\n[{unit}]", fontsize=8)
-        axes[i, 1].set_ylim(axes[i, 0].get_ylim())
-        for ax in axes[i]:
+    axes = az.plot_trace(result.idata, var_names=names, compact=False, legend=True,
+                         figsize=(10, 1.35 * len(names) + 0.8), backend_kwargs={"layout": "constrained"})
+    fig = axes.ravel()[0].figure
+    for row, name in zip(axes, names):
+        unit = result.idata.posterior[name].attrs.get("units", "")
+        row[0].set_title(f"{name} [{unit}]" if unit else name, fontsize=8)
+        row[1].set_title("")
+        row[1].xaxis.set_major_locator(MaxNLocator(integer=True))
+        for ax in row:
             ax.tick_params(labelsize=7)
-            ax.grid(alpha=0.3)
-    axes[-1, 0].set_xlabel(f"kept draw (burn-in {result.burn_in}, thin {result.thin} steps)", fontsize=8)
-    axes[-1, 1].set_xlabel("density", fontsize=8)
-    axes[0, 1].legend(fontsize=6)
-    fig.tight_layout()
+    axes[-1, 1].set_xlabel(f"kept draw (burn-in {result.burn_in} steps, thin {result.thin})", fontsize=8)
     return fig
 
 
-def pair(result, names: Sequence[str] | None = None, max_params: int = 5, max_points: int = 4000, seed: int = 0):
-    """Corner-style plot of up to ``max_params`` parameters (default: the first ones):
-    marginal histograms on the diagonal, scatter of a seeded subsample below it, ML
-    estimate (black cross) and its Cramér-Rao ±2σ (dashed) for reference."""
-    names = _names(result, names, max_params)
+def corner_parameters(result, max_params: int = 5) -> tuple[list[str], list[str]]:
+    """(shown, left out) for a corner plot: the parameters in the strongest posterior
+    correlations, taken pair by pair from the largest |ρ| down until ``max_params`` are
+    chosen, so the plot shows the joint shapes a table of marginals cannot; the order is
+    the sampled order."""
+    names = list(result.names)
+    if len(names) <= max_params:
+        return names, []
+    draws = np.column_stack([result.idata.posterior[n].values.ravel() for n in names])
+    rho = np.corrcoef(draws, rowvar=False)
+    i, j = np.triu_indices(len(names), k=1)
+    chosen: list[int] = []
+    for k in np.argsort(-np.abs(np.nan_to_num(rho[i, j]))):
+        for m in (i[k], j[k]):
+            if m not in chosen and len(chosen) < max_params:
+                chosen.append(int(m))
+        if len(chosen) >= max_params:
+            break
+    shown = [names[m] for m in sorted(chosen)]
+    return shown, [n for n in names if n not in shown]
+
+
+def pair(result, names: Sequence[str] | None = None, max_params: int = 5, max_points: int = 2000, seed: int = 0):
+    """ArviZ's pair plot with marginals of ``names`` (default: :func:`corner_parameters`), a
+    seeded subsample of the draws, and the ML estimate as reference (black lines)."""
+    import arviz as az
+
+    names = _names(result, names) if names is not None else corner_parameters(result, max_params)[0]
     post = result.idata.posterior
-    cols = {n: post[n].values.ravel() for n in names}
-    n_draws = next(iter(cols.values())).size
-    pick = np.random.default_rng(seed).choice(n_draws, size=min(max_points, n_draws), replace=False)
+    n_draws = post.sizes["chain"] * post.sizes["draw"]
+    keep = np.sort(np.random.default_rng(seed).choice(n_draws, size=min(max_points, n_draws), replace=False))
+    stacked = post[names].stack(sample=("chain", "draw")).isel(sample=keep)
+    # a one-chain posterior of the subsample: ArviZ plots draws, the subsample keeps it legible
+    sub = az.convert_to_inference_data({n: stacked[n].values[None, :] for n in names})
     ml = dict(zip(result.names, result.ml_estimate))
-    crb = dict(zip(result.names, result.crb_std))
     k = len(names)
-    fig, axes = plt.subplots(k, k, figsize=(1.9 * k + 0.8, 1.9 * k + 0.6), squeeze=False)
-    for i, yi in enumerate(names):
-        for j, xj in enumerate(names):
-            ax = axes[i, j]
-            if j > i:
-                ax.set_visible(False)
-                continue
-            if i == j:
-                ax.hist(cols[xj], bins=40, density=True, color="0.45", histtype="stepfilled", alpha=0.6)
-                ax.axvline(ml[xj], color="k", lw=0.8)
-                for s in (-2, 2):
-                    ax.axvline(ml[xj] + s * crb[xj], color="k", lw=0.6, ls="--")
-                ax.set_yticks([])
-            else:
-                ax.scatter(cols[xj][pick], cols[yi][pick], s=1, alpha=0.25, color="tab:blue", rasterized=True)
-                ax.plot(ml[xj], ml[yi], "kx", ms=6)
-            ax.tick_params(labelsize=6)
-            if i == k - 1:
-                ax.set_xlabel(xj, fontsize=8)
-            if j == 0 and i > 0:
-                ax.set_ylabel(yi, fontsize=8)
+    axes = az.plot_pair(sub, var_names=names, kind="scatter", marginals=True, figsize=(1.9 * k + 0.8, 1.9 * k + 0.6),
+                        scatter_kwargs={"alpha": 0.25, "s": 2, "rasterized": True},
+                        reference_values={n: ml[n] for n in names},
+                        reference_values_kwargs={"color": "k", "marker": "x", "markersize": 6},
+                        textsize=8)
+    fig = np.atleast_2d(axes).ravel()[0].figure
     fig.tight_layout()
     return fig
 
 
-def predictive_bands(result, channels: Sequence[str] | None = None, experiment: str | None = None,
-                     prob: float = 0.9):
-    """Measured data with the posterior predictive central ``prob`` band (with noise, light)
-    and the model band (noise-free output, dark) and median, per channel, for one experiment
-    (default: the first)."""
+def _residual_bands(result, channels: Sequence[str] | None, experiment: str | None, prob: float):
+    """(time, experiment, {channel: (measured − model median, band of new data, band of the
+    model, share of measured points outside the band of new data)}) for one experiment."""
     idata = result.idata
     if "posterior_predictive" not in idata.groups():
         raise ReportError("this posterior has no posterior_predictive group; sample with predictive draws")
     obs = idata.observed_data
     pp = idata.posterior_predictive
-    channels = list(obs.data_vars if channels is None else channels)
     experiments = obs["experiment"].values
     experiment = str(experiments[0]) if experiment is None else experiment
     rows = experiments == experiment
     if not np.any(rows):
         raise ReportError(f"no observations of experiment {experiment!r}; have {sorted(set(map(str, experiments)))}")
-    t = obs["time"].values[rows]
     lo_q, hi_q = 0.5 - prob / 2, 0.5 + prob / 2
-    fig, axes = plt.subplots(len(channels), 1, figsize=(10, 1.9 * len(channels) + 0.6), sharex=True, squeeze=False)
-    for ax, ch in zip(axes[:, 0], channels):
+    bands = {}
+    for ch in (list(obs.data_vars) if channels is None else channels):
         rep = pp[ch].values.reshape(-1, rows.size)[:, rows]
         mod = pp[f"{ch}_model"].values.reshape(-1, rows.size)[:, rows]
-        ax.plot(t, obs[ch].values[rows], color="0.5", lw=0.5, label="measured")
-        ax.fill_between(t, *np.quantile(rep, [lo_q, hi_q], axis=0), color="tab:blue", alpha=0.2,
-                        lw=0, label=f"predictive {prob:.0%}")
-        ax.fill_between(t, *np.quantile(mod, [lo_q, hi_q], axis=0), color="tab:blue", alpha=0.5,
-                        lw=0, label=f"model {prob:.0%}")
-        ax.plot(t, np.median(mod, axis=0), color="tab:blue", lw=0.8, label="model median")
-        ax.set_ylabel(f"{ch} [{obs[ch].attrs.get('units', '')}]", fontsize=8)
+        median = np.median(mod, axis=0)
+        rep_band, mod_band = np.quantile(rep, [lo_q, hi_q], axis=0), np.quantile(mod, [lo_q, hi_q], axis=0)
+        measured = obs[ch].values[rows]
+        outside = float(np.mean((measured < rep_band[0]) | (measured > rep_band[1])))
+        bands[ch] = (measured - median, rep_band - median, mod_band - median, outside)
+    return obs["time"].values[rows], experiment, bands
+
+
+def predictive_channels(result, max_channels: int = 6, prob: float = 0.9) -> tuple[list[str], list[str]]:
+    """(shown, left out): the ``max_channels`` channels with the largest share of measured points
+    outside the central ``prob`` band of new data (where the check has most to say), in the
+    data's order."""
+    _, _, bands = _residual_bands(result, None, None, prob)
+    worst = sorted(bands, key=lambda ch: -bands[ch][3])[:max_channels]
+    shown = [ch for ch in bands if ch in worst]
+    return shown, [ch for ch in bands if ch not in shown]
+
+
+def predictive_bands(result, channels: Sequence[str] | None = None, experiment: str | None = None,
+                     prob: float = 0.9, max_channels: int = 6):
+    """Posterior predictive check as residuals: per channel the measured data minus the model's
+    median, with the central ``prob`` band of new data (with noise, blue) and of the model
+    output (noise-free, orange) about that median. Drawn about the median because on the signal's
+    own scale a 2 % noise band is thinner than the line; ArviZ's plot_ppc draws distributions of
+    whole observations, not a band over time, so this stays our own. Default channels:
+    :func:`predictive_channels`."""
+    if channels is None:
+        channels = predictive_channels(result, max_channels, prob)[0]
+    t, experiment, bands = _residual_bands(result, channels, experiment, prob)
+    units = {ch: result.idata.observed_data[ch].attrs.get("units", "") for ch in bands}
+    fig, axes = plt.subplots(len(bands), 1, figsize=(10, 1.7 * len(bands) + 0.8), sharex=True, squeeze=False)
+    for ax, (ch, (resid, rep_band, mod_band, outside)) in zip(axes[:, 0], bands.items()):
+        # the bands filled and the measured points dotted over them: a line through 3800 noisy
+        # samples would paint over the band it is checked against
+        ax.fill_between(t, *rep_band, color="tab:blue", alpha=0.35, lw=0, label=f"new data {prob:.0%}")
+        ax.fill_between(t, *mod_band, color="tab:orange", alpha=0.9, lw=0, label=f"model {prob:.0%}")
+        ax.plot(t, resid, ".", ms=1.2, color="0.15", alpha=0.6, label="measured − model median")
+        ax.set_ylabel(f"{ch} [{units[ch]}]", fontsize=8)
+        ax.set_title(f"{ch}: {outside:.0%} of the measured points outside the {prob:.0%} band of new data",
+                     fontsize=8, loc="left")
         ax.tick_params(labelsize=7)
         ax.grid(alpha=0.3)
-    axes[0, 0].legend(fontsize=7, loc="upper right", ncol=4)
+    axes[0, 0].legend(fontsize=7, loc="upper right", ncol=3)
     axes[-1, 0].set_xlabel(f"time [s] ({experiment})", fontsize=8)
     fig.tight_layout()
     return fig

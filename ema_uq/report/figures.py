@@ -46,6 +46,9 @@ def convergence(histories: Mapping[str, Sequence[dict]]):
     for label, history in histories.items():
         ax.plot([h["iteration"] for h in history], [h["log_det_R"] for h in history], marker="o",
                 label=label, **{k: v for k, v in STYLES.get(label, {}).items() if k != "lw"})
+    from matplotlib.ticker import MaxNLocator
+
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))   # iterations are counted, not measured
     ax.set_xlabel("iteration")
     ax.set_ylabel("log det R")
     ax.grid(alpha=0.3)

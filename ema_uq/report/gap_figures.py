@@ -100,10 +100,16 @@ def gap_ledger(result):
     ax.grid(alpha=0.3, axis="y")
 
     verdict = result.headline()
-    fig.suptitle(f"Gap ledger, {result.concept}: {verdict}; held-out systematic NRMSE "
-                 f"{result.gap['before']:.3g} -> {result.gap['after']:.3g}"
-                 + ("" if result.gap.get("shrink") is None else f" (shrink {result.gap['shrink']:.2f})"),
-                 fontsize=10)
+    # the pair the shrink is computed from (the held-out part that did not choose the effect),
+    # the same numbers as the report's text and candidate table
+    g = result.gap
+    scored = g.get("shrink_gap_before") is not None
+    before, after = (g["shrink_gap_before"], g.get("shrink_gap_after")) if scored else (g["before"], g["after"])
+    after = float("nan") if after is None else after
+    shrink = "" if g.get("shrink") is None else (
+        f", shrink {g['shrink']:.2f}" + (f" ± {g['shrink_se']:.2f}" if g.get("shrink_se") is not None else ""))
+    fig.suptitle(f"Gap ledger, {result.concept}: {verdict}; held-out systematic NRMSE (scoring part) "
+                 f"{before:.3g} -> {after:.3g}{shrink}", fontsize=10)
     return fig
 
 

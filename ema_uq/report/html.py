@@ -40,8 +40,65 @@ def _fmt(x: float | None, digits: int = 5) -> str:
     return f"{x:.{digits}g}"
 
 
+def _decimals(sigma: float) -> int:
+    """Decimal places that keep two significant digits of ``sigma`` (negative: round to tens...)."""
+    return 1 - int(np.floor(np.log10(abs(sigma))))
+
+
+def _uncertain(x: float, sigma: float) -> tuple[str, str, str]:
+    """(x, sigma, power suffix) as text: two significant digits of sigma and x to the same
+    place; very large or small magnitudes share one power of ten (suffix ``·10<sup>k</sup>``)."""
+    big = max(abs(x), sigma)
+    power = int(np.floor(np.log10(big))) if big > 0 else 0
+    if -3 <= power < 5:
+        d = _decimals(sigma)
+        return _round(x, d), _round(sigma, d), ""
+    scale = 10.0 ** power
+    d = _decimals(sigma / scale)
+    return _round(x / scale, d), _round(sigma / scale, d), f"·10<sup>{power}</sup>"
+
+
+def _known(sigma: float | None) -> bool:
+    return sigma is not None and bool(np.isfinite(sigma)) and sigma > 0
+
+
+def _pm(x: float | None, sigma: float | None, fallback: int = 4) -> str:
+    """``x ± sigma`` so that a number shows no digit its uncertainty does not support
+    (:func:`_uncertain`). Without a finite positive sigma, x has ``fallback`` significant
+    digits and the sigma shows as –."""
+    if x is None or not np.isfinite(x):
+        return _fmt(None)
+    if not _known(sigma):
+        return f"{_fmt(x, fallback)} ± {_fmt(None)}"
+    xs, ss, power = _uncertain(x, sigma)
+    return f"({xs} ± {ss}){power}" if power else f"{xs} ± {ss}"
+
+
+def _at(x: float | None, sigma: float | None, fallback: int = 4) -> str:
+    """``x`` alone to the place two significant digits of ``sigma`` give (interval ends, truths)."""
+    if x is None or not np.isfinite(x):
+        return _fmt(None)
+    if not _known(sigma):
+        return _fmt(x, fallback)
+    xs, _, power = _uncertain(x, sigma)
+    return xs + power
+
+
+def _round(x: float, decimals: int) -> str:
+    if decimals > 0:
+        return f"{x:.{decimals}f}"
+    return f"{round(x, decimals):.0f}"
+
+
+#: called with a line after every figure drawn (the report stage's progress; None: silent)
+PROGRESS = None
+
+
 def _img(fig, alt: str) -> str:
-    return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{figures.to_png_base64(fig)}">'
+    text = f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{figures.to_png_base64(fig)}">'
+    if PROGRESS is not None:
+        PROGRESS(f"drew {alt}")
+    return text
 
 
 def _held_parameters(fits: dict) -> list[str]:
@@ -57,10 +114,11 @@ def _held_parameters(fits: dict) -> list[str]:
                      "lumped group carries the group, so its value is the group's combination less the held "
                      "values and its σ holds only given them: the combination's σ is the bound.</p>")
         parts.append(_table(["parameter", "held at", "reason"],
-                            [[n, _fmt(r["value"], 6), html.escape(r["reason"])] for n, r in f["fixed"].items()]))
-        parts.append(_table(["identifiable combination", "value", "CRB σ", "95 % interval"],
-                            [[html.escape(c["expression"]), _fmt(c["value"], 6), _fmt(c["std"], 3),
-                              f"[{_fmt(c['ci95'][0], 6)}, {_fmt(c['ci95'][1], 6)}]"] for c in f["combinations"]]))
+                            [[n, _fmt(r["value"], 4), html.escape(r["reason"])] for n, r in f["fixed"].items()]))
+        parts.append(_table(["identifiable combination", "value ± CRB σ", "95 % interval"],
+                            [[html.escape(c["expression"]), _pm(c["value"], c["std"]),
+                              f"[{_at(c['ci95'][0], c['std'])}, {_at(c['ci95'][1], c['std'])}]"]
+                             for c in f["combinations"]]))
     return parts
 
 
@@ -76,8 +134,8 @@ def _identification_section(study: dict, results: Path) -> tuple[str, dict]:
         return '<p class="muted">Identification not run.</p>', {}
     truth = model.parameters.vector(study["data"].get("set", {}))
     names = model.parameters.names
-    header = ["parameter", "unit"] + (["truth"] if synthetic else []) + [f"{k} estimate" for k in fits] \
-        + [f"{k} CRB σ" for k in fits] + ([f"{k} (est−truth)/σ" for k in fits] if synthetic else [])
+    header = ["parameter", "unit"] + (["truth"] if synthetic else []) + [f"{k} estimate ± CRB σ" for k in fits] \
+        + ([f"{k} (est−truth)/σ" for k in fits] if synthetic else [])
     rows = []
     for i, n in enumerate(names):
         est = [fits[k]["parameters"][n]["estimate"] for k in fits]
@@ -85,9 +143,8 @@ def _identification_section(study: dict, results: Path) -> tuple[str, dict]:
         # the member that carries a lumped group: its σ holds only given the held members
         kept = [fits[k]["parameters"][n].get("role") == "kept" for k in fits]
         z = [((e - truth[i]) / s) if s and not c else None for e, s, c in zip(est, std, kept)]
-        rows.append([n, model.parameters[n].unit] + ([_fmt(truth[i])] if synthetic else [])
-                    + [_fmt(e, 6) for e in est]
-                    + [f"{_fmt(s, 3)} (given the held)" if c else _fmt(s, 3) for s, c in zip(std, kept)]
+        rows.append([n, model.parameters[n].unit] + ([_fmt(truth[i], 4)] if synthetic else [])
+                    + [f"{_pm(e, s)} (σ given the held)" if c else _pm(e, s) for e, s, c in zip(est, std, kept)]
                     + ([_fmt(v, 2) for v in z] if synthetic else []))
     summary_rows = [[k, "yes" if f["converged"] else '<span class="flag">no</span>', f["iterations"],
                      f["n_simulations"], f"{f['wall_time_s']:.2f}", _fmt(f["log_det_R"], 8),
@@ -130,8 +187,8 @@ def _identification_section(study: dict, results: Path) -> tuple[str, dict]:
     for k, f in fits.items():
         for v in f.get("validation", []):
             for ch, c in v["channels"].items():
-                val_rows.append([k, ch, _fmt(c["fit_percent"], 4), _fmt(c["nrmse"], 4),
-                                 _fmt(c["ljung_box_p"], 3), "yes" if c["white"] else '<span class="flag">no</span>',
+                val_rows.append([k, ch, f"{c['fit_percent']:.1f}", _fmt(c["nrmse"], 2),
+                                 _fmt(c["ljung_box_p"], 2), "yes" if c["white"] else '<span class="flag">no</span>',
                                  "yes" if c["independent_of_inputs"] else '<span class="flag">no</span>'])
     if val_rows:
         parts += ["<h3>Validation on data not used for estimation</h3>",
@@ -164,10 +221,10 @@ def _posterior_section(study: dict, results: Path) -> str:
         if not ok:
             flagged.append(name)
         ratio = r["sd"] / r["crb_sd"] if r["crb_sd"] > 0 else np.nan
-        rows.append([name] + ([_fmt(truth.get(name))] if synthetic else []) + [
-                     f"{_fmt(r['ml'], 6)} ± {_fmt(r['crb_sd'], 3)}",
-                     f"{_fmt(r['mean'], 6)} ± {_fmt(r['sd'], 3)}", f"[{_fmt(r[hdi_lo], 6)}, {_fmt(r[hdi_hi], 6)}]",
-                     _fmt(ratio, 3), _fmt(r["r_hat"], 4), f"{r['ess_bulk']:.0f}", f"{r['ess_tail']:.0f}",
+        rows.append([name] + ([_fmt(truth.get(name), 4)] if synthetic else []) + [
+                     _pm(r["ml"], r["crb_sd"]), _pm(r["mean"], r["sd"]),
+                     f"[{_at(r[hdi_lo], r['sd'])}, {_at(r[hdi_hi], r['sd'])}]",
+                     _fmt(ratio, 2), f"{r['r_hat']:.3f}", f"{r['ess_bulk']:.0f}", f"{r['ess_tail']:.0f}",
                      _fmt(r["mcse_mean"], 2)])
     a = post.attrs
     state = "converged" if post.converged else '<span class="flag">not converged</span>'
@@ -188,12 +245,27 @@ def _posterior_section(study: dict, results: Path) -> str:
                  "MCSE mean"], rows)]
     if flagged:
         parts.append(f'<p class="flag">R-hat ≥ 1.01 or bulk ESS &lt; 400: {html.escape(", ".join(flagged))}</p>')
-    parts += ["<h3>Traces</h3>", _img(bayes_figures.trace(post), "trace plots"),
-              "<h3>Corner plot</h3>", _img(bayes_figures.pair(post), "corner plot")]
+    shown, left_out = bayes_figures.corner_parameters(post)
+    corner_note = ("" if not left_out else
+                   f"<p>The {len(shown)} parameters in the strongest posterior correlations (pairs taken from the "
+                   f"largest |ρ| down); not shown: {html.escape(', '.join(left_out))} (their marginals are in the "
+                   "table and the traces). Black crosses: the ML estimate.</p>")
+    parts += ["<h3>Traces</h3>",
+              "<p>Per parameter: the marginal density of each ensemble (left) and its kept draws (right); ArviZ calls "
+              "the ensembles chains 0, 1, ….</p>",
+              _img(bayes_figures.trace(post), "trace plots"),
+              "<h3>Corner plot</h3>", corner_note, _img(bayes_figures.pair(post, names=shown), "corner plot")]
+    parts.append("<h3>Posterior predictive check</h3>")
     try:
-        parts += ["<h3>Posterior predictive bands</h3>", _img(bayes_figures.predictive_bands(post), "predictive bands")]
+        channels, rest = bayes_figures.predictive_channels(post)
+        parts += ["<p>Measured data minus the model's posterior median, with the central 90 % band of new data "
+                  "(blue: model and noise) and of the model output alone (orange). About 10 % of the points "
+                  "should fall outside the blue band. "
+                  + (f"Shown: the {len(channels)} channels with the most points outside it; the other "
+                     f"{len(rest)} ({html.escape(', '.join(rest))}) have fewer." if rest else "") + "</p>",
+                  _img(bayes_figures.predictive_bands(post, channels=channels), "posterior predictive check")]
     except ValueError as exc:
-        parts.append(f'<p class="muted">{html.escape(str(exc))}</p>')
+        parts.append(f'<p class="muted">Not drawn: {html.escape(str(exc))}.</p>')
     return "\n".join(parts)
 
 
@@ -218,7 +290,7 @@ def _sobol_section(results: Path) -> str:
         row = [html.escape(n)]
         for q in qoi:
             st, conf = sobol["qoi"][q]["ST"][n], sobol["qoi"][q]["ST_conf"][n]
-            row.append(f"{_fmt(st, 2)} ± {_fmt(conf, 1)}")
+            row.append(_pm(st, conf, 2))
         rows.append(row)
     parts += ["<h3>Total indices S<sub>T</sub> ± 95 % interval, main quantities of interest (all in SOBOL.json)</h3>",
               _table(["parameter"] + [html.escape(q) for q in qoi], rows),
@@ -244,13 +316,19 @@ def _identifiability_section(study: dict, results: Path) -> str:
 
         posterior = PosteriorResult.from_netcdf(results / "posterior.nc").summary()
     sets = ident["sensor_sets"]
-    parts = []
+    parts = [f'<p class="muted">Sensor set {html.escape(name)} not assessed: {html.escape(why)}.</p>'
+             for name, why in (ident.get("skipped_sensor_sets") or {}).items()]
     for name, r in sets.items():
         fim = r["fim"]
+        if fim.get("condition") is not None:
+            condition = f"condition number {_fmt(fim['condition'], 2)}"
+        else:  # singular: the number that means something is the one on the identifiable subspace
+            condition = ("singular (no condition number); condition on the identifiable subspace "
+                         f"{_fmt(fim.get('condition_identifiable'), 2)}")
         parts.append(f"<p><b>{html.escape(name)}</b> sensors ({html.escape(', '.join(r['channels']))}): information "
-                     f"rank {fim['rank']} of {fim['n_parameters']}, condition {_fmt(fim['condition'], 3)}.</p>")
+                     f"rank {fim['rank']} of {fim['n_parameters']}, {condition}.</p>")
         if r["combinations"]:
-            items = "".join(f"<li>{html.escape(c['expression'])} = {_fmt(c.get('value'), 5)} ± {_fmt(c.get('std'), 2)}</li>"
+            items = "".join(f"<li>{html.escape(c['expression'])} = {_pm(c.get('value'), c.get('std'))}</li>"
                             for c in r["combinations"])
             parts.append(f"<p>Identifiable combinations:</p><ul>{items}</ul>")
     parts += [_img(sensitivity_figures.sensor_set_verdicts(ident), "verdicts per sensor set"),
@@ -268,17 +346,19 @@ def _identifiability_section(study: dict, results: Path) -> str:
                 row += ["–"] * 4
                 continue
             ci = t.get("profile_ci")
-            ci_text = "–" if not ci else "[" + ", ".join("open" if x is None else f"{x:.4g}" for x in ci) + "]"
+            ci_text = "–" if not ci else "[" + ", ".join("open" if x is None else _at(x, t["crb_std"], 3)
+                                                         for x in ci) + "]"
             verdict = t["verdict"].replace("_", " ")
             if t["verdict"] != "identifiable":
                 verdict = f'<span class="flag">{verdict}</span>'
-            row += [_fmt(t["crb_std"], 3), ci_text,
-                    f"{_fmt(t['collinearity'], 3)} ({html.escape(str(t.get('most_collinear_with') or '–'))})", verdict]
-        st = sobol["qoi"].get("cost", {}).get("ST", {}).get(n) if sobol else None
+            row += [_fmt(t["crb_std"], 2), ci_text,
+                    f"{_gamma(t['collinearity'])} ({html.escape(str(t.get('most_collinear_with') or '–'))})", verdict]
+        cost = sobol["qoi"].get("cost", {}) if sobol else {}
+        st, st_conf = cost.get("ST", {}).get(n), cost.get("ST_conf", {}).get(n)
         ratio = None
         if posterior is not None and n in posterior.index and posterior.loc[n, "crb_sd"] > 0:
             ratio = posterior.loc[n, "sd"] / posterior.loc[n, "crb_sd"]
-        row += [_fmt(st, 2), _fmt(ratio, 3)]
+        row += [_pm(st, st_conf, 2) if st is not None else _fmt(None), _fmt(ratio, 2)]
         rows.append(row)
     parts += ["<h3>Dossier per friction/damping parameter</h3>",
               "<p>Cramér-Rao σ, 95 % profile-likelihood interval, largest pairwise Brun collinearity index and its "
@@ -286,6 +366,15 @@ def _identifiability_section(study: dict, results: Path) -> str:
               "width relative to the Cramér-Rao σ (fit channels of the study).</p>",
               _table(header, rows)]
     return "\n".join(parts)
+
+
+def _gamma(value: float | None) -> str:
+    """A Brun collinearity index; the analysis caps an exactly collinear pair at GAMMA_CAP."""
+    from ..identifiability import GAMMA_CAP
+
+    if value is not None and np.isfinite(value) and value >= GAMMA_CAP:
+        return "≥ 10<sup>12</sup> (exactly collinear)"
+    return _fmt(value, 2)
 
 
 def _png_file(path: Path, alt: str) -> str:
@@ -304,7 +393,7 @@ def _honest_shrink(summary: dict) -> str:
     """The shrink of an ``effect`` verdict, scored on held-out data not used to choose the effect."""
     if summary.get("shrink") is None:
         return "No shrink is reported: the verdict names no effect."
-    return (f"Shrink {_fmt(summary['shrink'], 3)} ± {_fmt(summary.get('shrink_se'), 2)} (signed, block-bootstrap "
+    return (f"Shrink {_pm(summary['shrink'], summary.get('shrink_se'), 2)} (signed, ± block-bootstrap "
             f"standard error), scored on {html.escape(str(summary.get('shrink_record', 'held-out data')))}, "
             "which did not take part in choosing the effect.")
 
@@ -332,6 +421,15 @@ def _open_set_parts(gap: dict) -> list[str]:
     return parts
 
 
+def _scored_gap(summary: dict) -> tuple[float | None, float | None]:
+    """(before, after) of the gap on the held-out part that scores the shrink: the one pair of
+    numbers the report prints for the held-out gap, so text, table and ledger agree
+    (``shrink = 1 - after / before``). Older GAP.json files have only before/after."""
+    if summary.get("shrink_gap_before") is not None:
+        return summary["shrink_gap_before"], summary.get("shrink_gap_after")
+    return summary.get("before", summary.get("gap_before")), summary.get("after", summary.get("gap_after"))
+
+
 def _gap_section(study: dict, results: Path) -> str:
     """The gap ledger: verdict, where the nominal model departs, each candidate's refit scores,
     the winner's parameters and the before/after figure."""
@@ -350,32 +448,37 @@ def _gap_section(study: dict, results: Path) -> str:
         parts.append(f"<p>Check of this study: the rig-like records were generated with the hidden effect(s) "
                      f"<b>{html.escape(truth)}</b>; the diagnosis did not see them.</p>")
     summary = gap.get("gap") or {}
-    if "before" in summary or "gap_before" in summary:
-        before = summary.get("before", summary.get("gap_before"))
-        after = summary.get("after", summary.get("gap_after"))
+    before, after = _scored_gap(summary)
+    if before is not None:
         metric = summary.get("metric", "held-out systematic NRMSE")
-        parts.append(f"<p>Gap metric ({html.escape(str(metric))}): {_fmt(before, 4)} before, {_fmt(after, 4)} after "
-                     f"the best candidate on all held-out data. {_honest_shrink(summary)}</p>")
+        # the numbers the shrink is computed from, as in the candidate table and the ledger figure
+        parts.append(f"<p>Gap metric ({html.escape(str(metric))}) on the scoring part of the held-out data: "
+                     f"{_fmt(before, 3)} before, {_fmt(after, 3)} after the winning candidate. "
+                     f"{_honest_shrink(summary)}</p>")
     parts += _open_set_parts(gap)
     extra = [k for k in ("delta_bic", "likelihood_ratio", "held_out_gain", "signature_match") if gap["ranking"]
              and k in gap["ranking"][0]]
     rows = [[html.escape(str(c["effect"])), html.escape(str(c.get("family", c["effect"]))), _fmt(c["score"], 4),
-             _fmt(c["gap_before"], 4), _fmt(c["gap_after"], 4),
-             f"{_fmt(c['shrink'], 3)} ± {_fmt(c.get('shrink_se'), 2)}"] + [_fmt(c.get(k), 4) for k in extra]
+             _fmt(c["gap_before"], 3), _fmt(c["gap_after"], 3),
+             _pm(c["shrink"], c.get("shrink_se"), 2)] + [_fmt(c.get(k), 3) for k in extra]
             for c in gap["ranking"]]
     parts += ["<h3>Candidates (best first; gap and shrink on the scoring part of the held-out data)</h3>",
               _table(["effect", "family", "score", "gap before", "gap after", "shrink ± se"]
                      + [k.replace("_", " ") for k in extra], rows, name_cols=2)]
     params = gap.get("effect_parameters") or {}
     if params:
-        prow = [[html.escape(k), f"{_fmt(v.get('estimate'), 5)} ± {_fmt(v.get('std'), 3)}",
+        prow = [[html.escape(k), _pm(v.get("estimate"), v.get("std")),
                  html.escape(str(v.get("unit", "")))] for k, v in params.items()]
         parts += ["<h3>Estimated effect parameters</h3>", _table(["parameter", "estimate ± CRB σ", "unit"], prow)]
     if gap.get("selected"):
         parts.append(f"<p>Effects kept by forward selection: {html.escape(' + '.join(gap['selected']))}.</p>")
     ledger = results / "gap_ledger.png"
+    parts.append("<h3>Gap ledger</h3>")
     if ledger.exists():
-        parts += ["<h3>Gap ledger</h3>", _png_file(ledger, "gap ledger")]
+        parts.append(_png_file(ledger, "gap ledger"))
+    else:
+        parts.append('<p class="muted">No ledger figure: the gap stage wrote none (ema-uq gap --figure '
+                     'gap_ledger.png draws it).</p>')
     return "\n".join(parts)
 
 
@@ -401,15 +504,21 @@ def _selfcheck_section(results: Path) -> str:
     if "top1" not in sc:
         return '<p class="muted">Self-check file of an older format; rerun ema-uq gap-selfcheck.</p>'
     targets = sc["targets"]
-    status = sc.get("status") or {k: "met" if v else "not met" for k, v in sc["met"].items()}
+    # the self-check's own one-sided judgement; files without it are judged on the two-sided interval
+    status = sc.get("status") or {}
 
     def rate(name, key, score, cmp):
         r = sc.get(score)
         if r is None or key not in targets:
             return [name, "–", "", "", ""]
+        if not r.get("n"):
+            return [name, "no case", "–", f"{cmp} {targets[key]}", '<span class="muted">not shown: no case</span>']
         low, high = r["interval95"]
-        mark = status.get(key, "")
-        mark = mark if mark == "met" else f'<span class="flag">{html.escape(mark)}</span>'
+        if key in status:
+            mark = status[key]
+            mark = mark if mark == "met" else f'<span class="flag">{html.escape(mark)}</span>'
+        else:
+            mark = _judged(low, high, targets[key], cmp)
         return [name, f"{_fmt(r['value'], 3)} ({r['count']}/{r['n']})", f"{_fmt(low, 2)}–{_fmt(high, 2)}",
                 f"{cmp} {targets[key]}", mark]
 
@@ -422,11 +531,13 @@ def _selfcheck_section(results: Path) -> str:
                  "left_out_flagged", "≥"),
             rate("wrong family named with high confidence", "wrong_family_confident", "wrong_family_confident", "≤"),
             ["honest shrink where the right family was named (median, quartiles)",
-             f"{_fmt(s['median'], 3)} ({_fmt(s['q25'], 3)}–{_fmt(s['q75'], 3)}), n = {s['n']}",
-             f"median se {_fmt(s['median_se'], 2)}", "", ""]]
+             (f"{_fmt(s['median'], 2)} ({_fmt(s['q25'], 2)}–{_fmt(s['q75'], 2)}), n = {s['n']}" if s.get("n", 0) >= 4
+              else f"n = {s.get('n', 0)}: " + (", ".join(_fmt(c["shrink"], 2) for c in sc["cases"]
+                                                          if c.get("shrink") is not None and c["correct"]) or "–")),
+             f"median se {_fmt(s['median_se'], 2)}" if s.get("n") else "–", "", ""]]
     cases = []
     for c in sc["cases"]:
-        shrink = "" if c.get("shrink") is None else f"{_fmt(c['shrink'], 3)} ± {_fmt(c.get('shrink_se'), 2)}"
+        shrink = "" if c.get("shrink") is None else _pm(c["shrink"], c.get("shrink_se"), 2)
         ok = "yes" if c["correct"] else '<span class="flag">no</span>'
         cases.append([html.escape(str(c["case_id"]).split("/")[-1]), html.escape(str(c["truth_family"] or c["expected"])),
                       html.escape(c["sensors"]), html.escape(c["verdict"]),
@@ -451,6 +562,18 @@ def _selfcheck_section(results: Path) -> str:
             + "<h3>Cases</h3>"
             + _table(["case", "truth family", "sensors", "verdict", "family found", "confidence",
                       "shrink ± se", "time [s]", "right"], cases))
+
+
+def _judged(low: float, high: float, target: float, cmp: str) -> str:
+    """A target judged by the 95 % interval of its rate, not by the point estimate: met when the
+    whole interval is on the right side, not met when it is wholly on the wrong side, and not
+    shown either way when it straddles the target (too few cases for this target)."""
+    good, bad = (low >= target, high < target) if cmp == "≥" else (high <= target, low > target)
+    if good:
+        return '<span class="ok">met</span>'
+    if bad:
+        return '<span class="flag">NOT met</span>'
+    return '<span class="muted">not shown: n too small for the target</span>'
 
 
 def _read(results: Path, name: str) -> dict | None:
@@ -496,7 +619,7 @@ def _summary_section(study: dict, results: Path, fits: dict) -> str:
                     c["family"] for c in gap.get("contenders") or []))}.get(gap["verdict"],
                                                                            html.escape(str(gap["verdict"])))
         conf = f", {html.escape(str(gap['confidence']))} confidence" if gap.get("confidence") else ""
-        params = "; ".join(f"{html.escape(n)} = {_fmt(v.get('estimate'), 4)} ± {_fmt(v.get('std'), 2)} "
+        params = "; ".join(f"{html.escape(n)} = {_pm(v.get('estimate'), v.get('std'))} "
                            f"{html.escape(str(v.get('unit', '')))}" for n, v in (gap.get("effect_parameters") or {}).items())
         items.append(f"Sim-to-real gap: {what}{conf}" + (f" ({params})" if params else "") + ".")
     faults = _read(results, "faults.json")
@@ -522,13 +645,14 @@ def _summary_section(study: dict, results: Path, fits: dict) -> str:
         table = post.summary()
         items.append(f"Posterior: max R-hat {_fmt(float(table['r_hat'].max()), 4)}, min bulk ESS "
                      f"{float(table['ess_bulk'].min()):.0f}, converged "
-                     + ("yes" if post.converged else '<span class="flag">no</span>') + ".")
+                     + ("yes" if post.converged else '<span class="flag">no</span> ('
+                        + html.escape(str(post.attrs.get("stop_reason", "step cap reached"))) + ")") + ".")
     sobol = _read(results, "sobol.json")
     if sobol and "cost" in sobol["qoi"]:
-        st = sobol["qoi"]["cost"]["ST"]
+        st, conf = sobol["qoi"]["cost"]["ST"], sobol["qoi"]["cost"].get("ST_conf", {})
         top = sorted(st, key=lambda n: -st[n])[:3]
-        items.append("Sobol, largest total indices of the det R cost: "
-                     + ", ".join(f"{html.escape(n)} {_fmt(st[n], 2)}" for n in top) + ".")
+        items.append("Sobol, largest total indices of the det R cost (± 95 % interval): "
+                     + ", ".join(f"{html.escape(n)} {_pm(st[n], conf.get(n), 2)}" for n in top) + ".")
     if not items:
         return '<p class="muted">No stage has written results yet.</p>'
     return "<ul>" + "".join(f"<li>{i}</li>" for i in items) + "</ul>"
@@ -541,9 +665,9 @@ def _published_section(study: dict, results: Path) -> str:
     comp = io.read_json(path).get("published_comparison") if path.exists() else None
     if not comp:
         return '<p class="muted">EMPS fit (with its comparison to the published values) not available.</p>'
-    rows = [[html.escape(r["parameter"]), html.escape(r["unit"]), f"{_fmt(r['ml'], 6)} ± {_fmt(r['ml_std'], 3)}",
-             f"{_fmt(r['published'], 6)} ± {_fmt(r['published_std'], 3)}", _fmt(r["difference_percent"], 3),
-             _fmt(r["z"], 3)] for r in comp["parameters"]]
+    rows = [[html.escape(r["parameter"]), html.escape(r["unit"]), _pm(r["ml"], r["ml_std"]),
+             _pm(r["published"], r["published_std"]), _fmt(r["difference_percent"], 2),
+             _fmt(r["z"], 2)] for r in comp["parameters"]]
     err_rows = []
     for role, kinds in comp["errors"].items():
         for kind, e in kinds.items():
@@ -584,8 +708,8 @@ def _faults_section(results: Path) -> str:
     for r in faults["diagnoses"]:
         label, expected = _fault_label(r), faults["expected"].get(r["record_set"], "?")
         mark = "" if label == expected else ' <span class="flag">≠ expected</span>'
-        shrink = "–" if r.get("shrink") is None else f"{_fmt(r['shrink'], 3)} ± {_fmt(r.get('shrink_se'), 2)}"
-        params = "; ".join(f"{html.escape(n)} = {_fmt(p.get('estimate'), 4)} ± {_fmt(p.get('std'), 2)} "
+        shrink = "–" if r.get("shrink") is None else _pm(r["shrink"], r.get("shrink_se"), 2)
+        params = "; ".join(f"{html.escape(n)} = {_pm(p.get('estimate'), p.get('std'))} "
                            f"{html.escape(str(p.get('unit', '')))}" for n, p in
                            ((r.get("effect_parameters") or {}).items() if r["verdict"] == "effect" else ()))
         rows.append([html.escape(r["record_set"]), html.escape(expected), html.escape(label) + mark,
@@ -638,10 +762,51 @@ def _stage_cost_section(results: Path) -> str:
             + _table(["job", "wall time [s]", "CPU time [s]", "peak memory [MB]"], rows))
 
 
+#: the dependencies whose versions can change a number of the report
+DEPENDENCIES = ("numpy", "scipy", "numba", "xarray", "pandas", "emcee", "arviz", "SALib", "matplotlib", "snakemake")
+
+
+def _source_state() -> tuple[str, str]:
+    """(commit, state) of the git checkout the package is imported from: state is "clean",
+    "dirty (n files changed)" or why there is no commit (an installed wheel, no git)."""
+    import subprocess
+
+    root = Path(__file__).resolve().parents[2]
+    try:
+        commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
+                                timeout=20)
+        if commit.returncode != 0:
+            return "–", "not a git checkout (an installed copy)"
+        status = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+                                capture_output=True, text=True, timeout=20)
+    except (OSError, subprocess.SubprocessError):
+        return "–", "git not available"
+    changed = [line for line in status.stdout.splitlines() if line.strip()]
+    return commit.stdout.strip(), f"dirty ({len(changed)} tracked files changed)" if changed else "clean"
+
+
+def _versions() -> str:
+    from importlib import metadata
+
+    out = []
+    for name in DEPENDENCIES:
+        try:
+            out.append(f"{name} {metadata.version(name)}")
+        except metadata.PackageNotFoundError:
+            out.append(f"{name} not installed")
+    return ", ".join(out)
+
+
 def _provenance_section(study: dict, study_path: Path, results: Path, fits: dict) -> str:
+    import platform
+
     from .. import __version__
 
-    rows = [["package version", __version__], ["study file", html.escape(str(study_path.name))],
+    commit, state = _source_state()
+    rows = [["package version", __version__], ["git commit", commit],
+            ["working tree", f'<span class="flag">{state}</span>' if state.startswith("dirty") else state],
+            ["Python", platform.python_version()], ["dependencies", html.escape(_versions())],
+            ["study file", html.escape(str(study_path.name))],
             ["study hash", settings_hash(study)], ["seed", study.get("seed")]]
     for f in sorted(results.rglob("*")):
         if f.is_file() and f.suffix in (".nc", ".csv", ".mat") and "logs" not in f.parts:
@@ -651,7 +816,7 @@ def _provenance_section(study: dict, study_path: Path, results: Path, fits: dict
         rows.append([f"sha256 {html.escape(label)}", file_sha256(f)[:32] + "…" if f.is_file() else "not found"])
     for k, fit in fits.items():
         rows.append([f"{k} fit created", html.escape(str(fit.get("provenance", {}).get("created", "")))])
-    return _table(["item", "value"], [[html.escape(str(a)), str(b)] for a, b in rows])
+    return _table(["item", "value"], [[html.escape(str(a)), str(b)] for a, b in rows], name_cols=2)
 
 
 def build_report(study: dict, study_path: str | Path, results: str | Path) -> str:

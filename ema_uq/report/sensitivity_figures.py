@@ -127,7 +127,7 @@ def profile_likelihoods(result, names: Sequence[str] | None = None, ncols: int =
     colors = dict(zip(sets, plt.get_cmap("tab10").colors))
     for k, n in enumerate(names):
         ax = axes[k // ncols][k % ncols]
-        spans = []
+        spans, notes = [], []
         for set_name, s in sets.items():
             row = s["parameters"].get(n, {})
             if "profile" not in row:
@@ -139,15 +139,22 @@ def profile_likelihoods(result, names: Sequence[str] | None = None, ncols: int =
             spans.append(float(np.max(np.abs(rel))) or 1.0)
             ax.plot(rel, dv, marker="o", ms=3, color=colors[set_name], label=set_name)
             sd = row.get("crb_std")
-            if sd:
+            if sd and np.isfinite(sd):
                 fine = np.linspace(rel.min(), rel.max(), 100)
                 ax.plot(fine, 0.5 * (fine / 100 * abs(est) / sd) ** 2, color=colors[set_name], ls="--", lw=0.8)
+            else:
+                notes.append(f"{set_name}: no Cramér-Rao curve (singular information)")
+            if np.nanmax(np.abs(dv)) < 0.1 * threshold:
+                notes.append(f"{set_name}: flat, the data do not pin {n}")
         ax.axhline(threshold, color="0.4", lw=0.8)
         if len(spans) > 1 and max(spans) > 5 * min(spans):
             ax.set_xscale("symlog", linthresh=min(spans))
         top = max(3 * threshold, 1.0)
         ax.set_ylim(-0.1 * top, top)
         ax.set_title(n, fontsize=9)
+        if notes:   # say why a panel shows a line at zero and no parabola, instead of leaving it bare
+            ax.text(0.03, 0.95, "\n".join(notes), transform=ax.transAxes, fontsize=6.5, va="top",
+                    bbox=dict(facecolor="white", alpha=0.85, lw=0))
         ax.set_xlabel("deviation from estimate [%]", fontsize=7)
         ax.tick_params(labelsize=7)
         ax.grid(alpha=0.3)

@@ -7,7 +7,7 @@ import os
 import time as _time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -51,7 +51,8 @@ def _qoi_batch(setup: SensitivitySetup, thetas: np.ndarray, out: np.ndarray, nom
     return np.column_stack(cols)
 
 
-def evaluate(setup: SensitivitySetup, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def evaluate(setup: SensitivitySetup, rows: np.ndarray,
+             progress: Callable[[int], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Evaluate design rows (n, D): returns QoI (n, n_qoi) and the time-resolved series
     (n, len(TIME_RESOLVED_OUTPUTS), n_times), in batches of ``setup.batch_size`` sets per
     simulator call. Deterministic per row: any split into chunks gives the same numbers."""
@@ -79,6 +80,8 @@ def evaluate(setup: SensitivitySetup, rows: np.ndarray) -> tuple[np.ndarray, np.
                                    "narrow the ranges (sensitivity.range_fraction or sensitivity.parameters)")
         qoi[start:stop] = _qoi_batch(setup, thetas, out, nominal_out, k_y, phi_r, exp.dt)
         series[start:stop] = out[:, setup.time_index][:, :, series_idx].transpose(0, 2, 1)
+        if progress is not None:
+            progress(stop - start)
     return qoi, series
 
 
@@ -135,11 +138,12 @@ class SobolChunk:
             raise SensitivityError(f"{path}: not a chunk written by 'ema-uq sensitivity --chunk' ({exc})") from None
 
 
-def evaluate_chunk(setup: SensitivitySetup, design: np.ndarray, chunk_index: int, n_chunks: int) -> SobolChunk:
+def evaluate_chunk(setup: SensitivitySetup, design: np.ndarray, chunk_index: int, n_chunks: int,
+                   progress: Callable[[int], None] | None = None) -> SobolChunk:
     """Evaluate one of ``n_chunks`` independent parts of ``design`` (a job of its own in a workflow)."""
     start, stop = chunk_rows(design.shape[0], chunk_index, n_chunks)
     t0 = _time.perf_counter()
-    qoi, series = evaluate(setup, design[start:stop])
+    qoi, series = evaluate(setup, design[start:stop], progress)
     return SobolChunk(setup.concept, setup.digest(), chunk_index, n_chunks, start, stop, setup.qoi_names,
                       qoi, series, _time.perf_counter() - t0)
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time as _time
 from dataclasses import dataclass, field
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -185,11 +185,11 @@ def analyze_design(setup: SensitivitySetup, qoi_values: np.ndarray, series: np.n
     )
 
 
-def run(setup: SensitivitySetup) -> SobolResult:
+def run(setup: SensitivitySetup, progress: Callable[[int], None] | None = None) -> SobolResult:
     """The whole study in one process: design, evaluation, analysis."""
     design = setup.design()
     t0 = _time.perf_counter()
-    qoi_values, series = evaluate(setup, design)
+    qoi_values, series = evaluate(setup, design, progress)
     return analyze_design(setup, qoi_values, series, evaluation_time_s=_time.perf_counter() - t0)
 
 

@@ -215,6 +215,13 @@ def test_figures(result):
         plt.close(fig)
     with pytest.raises(ValueError, match="no posterior for k_n"):
         bayes_figures.pair(result, names=["J", "k_n"])
+    # the corner plot's choice: the parameters of the strongest correlations, the rest named
+    shown, left_out = bayes_figures.corner_parameters(result, max_params=2)
+    assert len(shown) == 2 and sorted(shown + left_out) == sorted(result.names)
+    draws = np.column_stack([result.idata.posterior[n].values.ravel() for n in result.names])
+    rho = np.abs(np.corrcoef(draws, rowvar=False) - np.eye(len(result.names)))
+    i, j = np.unravel_index(np.argmax(rho), rho.shape)
+    assert set(shown) == {result.names[i], result.names[j]}
 
 
 # --------------------------------------------------------------------------------------

@@ -38,7 +38,7 @@ MAGNITUDE = {"backlash": "backlash_delta", "stribeck": "stribeck_ratio", "shaft_
 #: further forms of the spec effects' families (the catalogue after the seven), form -> family
 FAMILY_FORMS = {"backlash_compliant": "backlash", "backlash_output": "backlash",
                 "torque_ripple_harmonics": "torque_ripple", "ujoint_stations": "ujoint_kinematics"}
-NOISE = 0.02  # fraction of channel RMS, MODEL_SPEC "hypothetical data"
+NOISE = 0.02  # fraction of channel RMS, docs/MODEL_SPEC.md, "hypothetical data"
 
 
 @pytest.fixture(scope="module")
@@ -66,7 +66,7 @@ def column(concept, channel):
 
 # --- API ------------------------------------------------------------------------------------
 def test_catalogue_is_the_model_spec_table():
-    """The seven MODEL_SPEC effects first, each its own family, then further forms of those
+    """The seven docs/MODEL_SPEC.md effects first, each its own family, then further forms of those
     families (allowed beside the spec table: the diagnosis names the family)."""
     assert tuple(CATALOGUE) == SPEC_EFFECTS + tuple(FAMILY_FORMS)
     for name, effect in CATALOGUE.items():

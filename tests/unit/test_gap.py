@@ -525,7 +525,10 @@ def test_self_check_scores_synthetic_outcomes():
         _outcome("out_of_catalogue", None, "ambiguous", None),               # a flag too
         _outcome("out_of_catalogue", None, "none", None),
     ], seed=5, quick=False, wall_time_s=7.0)
-    assert result.top1 == pytest.approx({"value": 0.6, "count": 3, "n": 5, "interval95": result.top1["interval95"]})
+    # pytest >= 9 refuses approx() of a nested dict, so the scalar fields are compared apart
+    assert {k: result.top1[k] for k in ("value", "count", "n")} == pytest.approx({"value": 0.6, "count": 3, "n": 5})
+    lo, hi = result.top1["interval95"]
+    assert set(result.top1) == {"value", "count", "n", "interval95"} and lo < 0.6 < hi
     assert result.false_alarm_rate == pytest.approx(0.05) and result.out_of_catalogue_rate == pytest.approx(4 / 6)
     # 1 alarm in 20 shows neither <= 0.05 nor > 0.05 at 95 %; nothing is met on so few cases
     assert result.status["false_alarm_rate"] == "n too small" and not any(result.met.values())
@@ -585,6 +588,11 @@ def test_self_check_report_section_and_confusion_figure(tmp_path):
     io.write_json(tmp_path / "selfcheck.json", data)
     text = _selfcheck_section(tmp_path)
     assert "data:image/png;base64" in text and "n too small" in text and "backlash_variant" in text
+    from ema_uq.report.html import _judged
+
+    # a self-check file without its own judgement is judged on the two-sided interval
+    assert "NOT met" in _judged(0.5, 0.8, 0.9, "≥") and ">met<" in _judged(0.91, 1.0, 0.9, "≥")
+    assert ">met<" in _judged(0.0, 0.049, 0.05, "≤") and "NOT met" in _judged(0.06, 0.2, 0.05, "≤")
 
 
 def test_one_real_self_check_case_is_diagnosed_blind():

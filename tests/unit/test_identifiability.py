@@ -262,6 +262,12 @@ def test_identifiability_verb(tmp_path, capsys):
     args[args.index("realistic")] = "full"
     assert cli.main(args) == 2
     assert "channel(s) Omega_TP1" in capsys.readouterr().err
+    # without --sensor-sets the defaults are full and realistic: full cannot be assessed on rig data
+    i = args.index("--sensor-sets")
+    del args[i:i + 2]
+    assert cli.main(args) == 0
+    assert "full skipped (channel(s) Omega_TP1" in capsys.readouterr().out
+    assert list(json.loads(out.read_text())["skipped_sensor_sets"]) == ["full"]
 
 
 # --------------------------------------------------------------------------------------
@@ -285,3 +291,17 @@ def test_complete_sensor_set_study(concept):
         assert real.verdict(n) == "structurally_non_identifiable", n
         assert real.max_pair_collinearity(n)[0] > 20
     assert len(real.combinations) == 2 and all(c["structural"] for c in real.combinations)
+
+
+def test_sensor_sets_whose_channels_the_data_lacks_are_skipped_and_named():
+    model = get_model("htls")
+    rig = list(model.sensor_sets["realistic"])
+    data = [synthesize("htls", deploy_retract(), noise=0.02, seed=1).select(rig)]
+    study = ident.sensor_set_study(data, model.parameters.nominal, ["J", "k_n"], ("full", "realistic"),
+                                   profile_names=[])
+    assert list(study.sets) == ["realistic"]
+    assert "Omega_TP1" in study.skipped["full"] and "not in the data" in study.skipped["full"]
+    assert study.to_json()["skipped_sensor_sets"] == study.skipped
+    assert "sensor set full skipped" in study.summary()
+    with pytest.raises(ident.IdentifiabilityError, match="no sensor set can be assessed.*give --channels"):
+        ident.sensor_set_study(data, model.parameters.nominal, ["J"], ("full",), profile_names=[])

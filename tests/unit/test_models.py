@@ -1,4 +1,4 @@
-"""The two concept models against MODEL_SPEC.md, and the compiled simulator against an
+"""The two concept models against docs/MODEL_SPEC.md, and the compiled simulator against an
 independent scipy reference (tests/reference_scipy.py).
 
 Expected values of the hand-computed states are written out from the spec formulas and the
@@ -23,7 +23,7 @@ EPS = 0.05  # rad/s, nominal omega_eps
 STEP_HALVING_TOL = 1e-6
 REFERENCE_TOL = 1e-5
 
-# --- MODEL_SPEC nominal tables, typed in from the spec ---------------------------------
+# --- docs/MODEL_SPEC.md nominal tables, typed in from the spec ---------------------------------
 STATION_LOSSES = {"B_TS1": 0.40, "C_TS1": 1.20, "B_U1": 0.10, "C_U1": 0.30,
                   "B_TS2": 0.44, "C_TS2": 1.35, "B_U2": 0.09, "C_U2": 0.33}
 SPEC_HTLS = {"J": 0.05, "k_n": 1.2, "B_TP1": 0.20, "C_TP1": 0.60, "B_TP2": 0.22, "C_TP2": 0.55,
