@@ -665,7 +665,7 @@ def _add_gap(subparsers) -> None:
         "gap", help="sim-to-real gap: where the nominal model departs from data, which effect causes it",
         description="Fit the nominal model by ML, localise its residual (channels, time, operating regimes, "
                     "shaft orders, residual tests), refit the model augmented by each catalogue effect, and "
-                    "write the verdict (effect / none / unexplained), the ranking and the held-out gap before "
+                    "write the open-set verdict (effect / ambiguous / unexplained / none), the ranking and the held-out gap before "
                     "and after the winning effect to GAP.json. Held-out data: the --validate files, else the "
                     "last --holdout fraction of each DATA record.")
     _add_data(p)
