@@ -7,7 +7,7 @@ healthy fit (Gauss-Newton on runs 1-5 of normal.csv, 15 blocks); one diagnosis p
 
 Usage: python benchmarks/cranfield.py [--quick | --splits all] [--out JSON]
     --quick: a reduced study (fit on runs 1-3, faults judged on runs 3-4 after fitting runs 1-2)
-    --splits all: the study under every split of the family :func:`ema_uq.cranfield.run_splits`
+    --splits all: the study under every split of the family :func:`ema_uq.rigs.cranfield.run_splits`
         (12 halvings of the ten runs, fitted | held out: the ten arcs and the two interleaved
         ones), one verdict line each, then the verdict counts per record set: how much the
         verdicts depend on which runs are held out, the rig drifting within each test session
@@ -24,7 +24,7 @@ import time
 import numpy as np
 
 from ema_uq import io
-from ema_uq.cranfield import CHANNELS, EXPECTED, run_splits, run_study
+from ema_uq.rigs.cranfield import CHANNELS, EXPECTED, run_splits, run_study
 from ema_uq.models import get_model
 from ema_uq.models.cranfield import EFFECTS
 from ema_uq.simulate import simulate_batch
@@ -57,7 +57,7 @@ def simulator_timings() -> dict[str, float]:
 
 
 def split_table(read, splits: dict | None = None) -> tuple[list[dict], dict[str, dict[str, int]]]:
-    """Every split of ``splits`` (default :func:`ema_uq.cranfield.run_splits`): per record set
+    """Every split of ``splits`` (default :func:`ema_uq.rigs.cranfield.run_splits`): per record set
     the verdict, the best candidate, its selection and reproducible shrink, the reproducible
     share of the gap and the fitted play of the backlash candidate; and the verdict counts per
     record set over the splits."""
@@ -91,7 +91,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="reduced study (about 40 s instead of 60 s)")
     parser.add_argument("--splits", choices=("all",), help="the study under every split of the run-split family "
-                                                          "(ema_uq.cranfield.run_splits)")
+                                                          "(ema_uq.rigs.cranfield.run_splits)")
     parser.add_argument("--out", help="also write the timings and the study as JSON")
     args = parser.parse_args()
     if args.quick and args.splits:
@@ -115,7 +115,7 @@ def main() -> None:
                   + ", ".join(f"{v} {n}" for v, n in sorted(c.items(), key=lambda kv: -kv[1])))
         if args.out:
             with open(args.out, "w", encoding="utf-8") as fh:
-                json.dump({"simulator_s": timings, "family": "ema_uq.cranfield.run_splits", "n_splits": len(splits),
+                json.dump({"simulator_s": timings, "family": "ema_uq.rigs.cranfield.run_splits", "n_splits": len(splits),
                            "expected": EXPECTED, "counts": counts, "splits": rows}, fh, indent=2, default=float)
         return
     splits = (dict(fit_runs=(1, 2, 3), healthy_held_out_runs=(6, 7, 8, 9), estimation_runs=(1, 2), held_out_runs=(3, 4))

@@ -1,5 +1,5 @@
-"""Cranfield linear actuator: the data-driven baseline (:mod:`ema_uq.cranfield_baseline`) beside
-the model-based fault diagnosis (:mod:`ema_uq.cranfield`).
+"""Cranfield linear actuator: the data-driven baseline (:mod:`ema_uq.rigs.cranfield_baseline`) beside
+the model-based fault diagnosis (:mod:`ema_uq.rigs.cranfield`).
 
 The baseline, a random forest on per-cycle features, is trained on the labelled record sets
 (normal -> none, backlash1/2 -> backlash, lackLubrication1/2 -> lubrication_loss) and
@@ -23,8 +23,8 @@ import json
 import time
 
 from ema_uq import io
-from ema_uq.cranfield import CHANNELS, EXPECTED, run_study
-from ema_uq.cranfield_baseline import CycleTable, cross_validate, leave_one_class_out
+from ema_uq.rigs.cranfield import CHANNELS, EXPECTED, run_study
+from ema_uq.rigs.cranfield_baseline import CycleTable, cross_validate, leave_one_class_out
 
 
 def main() -> None:

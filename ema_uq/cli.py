@@ -837,7 +837,7 @@ def _add_fault_diagnosis(subparsers) -> None:
 
 def _run_fault_diagnosis(args: argparse.Namespace) -> str:
     from . import io
-    from .cranfield import CHANNELS, run_study
+    from .rigs.cranfield import CHANNELS, run_study
     from .provenance import provenance
     from .rigs import rig_of
     from .study import load_study

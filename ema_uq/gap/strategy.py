@@ -146,7 +146,7 @@ class DiagnosisStrategy:
         ceiling of every candidate's shrink (the part of the gap that changes from run to run,
         which no fixed-parameter effect can explain); None (field or result): no replicates,
         the whole gap counts as explainable. The metric's ``z`` must be the mean
-        excess over its standard error (as :class:`ema_uq.cranfield.ExcessNrmse`'s), so that
+        excess over its standard error (as :class:`ema_uq.rigs.cranfield.ExcessNrmse`'s), so that
         the nominal's z less the ceiling's is the z of the reproducible part.
     structure : thresholds of the cell test of what a candidate leaves
         (:func:`ema_uq.gap.structure.structure_left`).
@@ -192,7 +192,7 @@ DEFAULT_STRATEGY = DiagnosisStrategy()
 
 #: concept -> strategy, or "module:attribute" imported on first use
 _REGISTRY: dict[str, DiagnosisStrategy | str] = {"emps": "ema_uq.rigs.emps:EMPS_STRATEGY",
-                                                 "cranfield": "ema_uq.cranfield:CRANFIELD_STRATEGY"}
+                                                 "cranfield": "ema_uq.rigs.cranfield:CRANFIELD_STRATEGY"}
 
 
 def register_strategy(concept: str, strategy: DiagnosisStrategy | str) -> None:

@@ -5,8 +5,8 @@ model, so a truth is known and the Sobol and identifiability stages of the frict
 apply.
 
 A rig: its module ``rigs/<concept>.py`` with a :class:`Rig` named ``RIG``, and its name in
-:data:`RIGS`. EMPS's study code lives in :mod:`ema_uq.rigs.emps`; Cranfield's
-(:mod:`ema_uq.cranfield`) will move beside it.
+:data:`RIGS`: the rig's study code lives in its module (:mod:`ema_uq.rigs.emps`,
+:mod:`ema_uq.rigs.cranfield` with :mod:`ema_uq.rigs.cranfield_baseline`).
 """
 from __future__ import annotations
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from ema_uq import get_model, io, simulate_batch
-from ema_uq import cranfield as study
+from ema_uq.rigs import cranfield as study
 from ema_uq.identify import FitProblem, Settings, estimate
 from ema_uq.models import cranfield
 

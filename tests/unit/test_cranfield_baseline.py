@@ -8,7 +8,7 @@ import pytest
 pytest.importorskip("sklearn")
 
 from ema_uq import get_model, simulate_batch  # noqa: E402
-from ema_uq import cranfield_baseline as baseline  # noqa: E402
+from ema_uq.rigs import cranfield_baseline as baseline  # noqa: E402
 from ema_uq.experiments import Experiment, Measurement  # noqa: E402
 from ema_uq.models import cranfield  # noqa: E402
 
