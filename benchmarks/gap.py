@@ -147,8 +147,7 @@ def _frozen_method() -> dict:
                                "where_source": strategy.where_source,
                                "metric": type(strategy.metric).__name__,
                                "z_significant": getattr(strategy.metric, "z_significant", None),
-                               "structure": plain(strategy.structure),
-                               "margin_evidence": float(strategy.margin_evidence)}
+                               "structure": plain(strategy.structure)}
     return {"catalogue": {c: catalogue_families(c) for c in PROTOCOL_SELFCHECK["concepts"]},
             "thresholds": plain(Thresholds()), "settings": plain(DiagnosisSettings()),
             "constants": {"Z_HELD_OUT": attribute.Z_HELD_OUT, "PROFILE_POINTS": attribute.PROFILE_POINTS,

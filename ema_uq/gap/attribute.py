@@ -71,7 +71,7 @@ Procedure (``diagnose``):
    (ΔBIC > ``BIC_MIN``, G > ``HELD_OUT_GAIN_MIN`` and, if the nominal model's gap on the
    selection part is significant, a reproducible shrink ≥ ``SHRINK_MIN`` of a reproducible
    part that is itself significant), *and* its family beats every other family and the nominal
-   model by 2 ln B ≥ ``margin_evidence`` (10) in family probability (evidence ΔBIC + G tempered
+   model by 2 ln B ≥ ``Thresholds.margin_evidence`` (10) in family probability (evidence ΔBIC + G tempered
    by the effective-sample fraction of the best model's residual), *and* its held-out residual
    leaves no cell — channel, stroke bin, direction, regime, frequency band — that carried a
    material part of the gap and that it did not halve (:mod:`ema_uq.gap.structure`). Its
@@ -109,7 +109,7 @@ The held-out gap is *significant* when common factors are found or the lag z exc
 
 Frozen thresholds (calibrated on self-check cases with seeds 100-103, never on the
 self-check's own seeds): ``BIC_MIN`` = 25, ``HELD_OUT_GAIN_MIN`` = 25, ``SHRINK_MIN`` = 0.5,
-``SHRINK_CONFIDENT`` = 0.8, ``MARGIN`` = 1.5, ``Z_HELD_OUT`` = 5, ``SIGNATURE_WEIGHT`` = 0.25.
+``SHRINK_CONFIDENT`` = 0.8, ``MARGIN_EVIDENCE`` = 10, ``Z_HELD_OUT`` = 5, ``SIGNATURE_WEIGHT`` = 0.25.
 On the calibration cases the true effect's ΔBIC was 500-25000 and the best wrong
 candidate's at most 660 (on an out-of-catalogue case, then without held-out shrink).
 """
@@ -142,7 +142,7 @@ BIC_MIN = _DEFAULT.bic_min
 HELD_OUT_GAIN_MIN = _DEFAULT.held_out_gain_min
 SHRINK_MIN = _DEFAULT.shrink_min
 SHRINK_CONFIDENT = _DEFAULT.shrink_confident
-MARGIN = _DEFAULT.margin
+MARGIN_EVIDENCE = _DEFAULT.margin_evidence
 SIGNATURE_WEIGHT = _DEFAULT.signature_weight
 Z_HELD_OUT = 5.0
 PHASE_STARTS = statistics.PHASE_STARTS
@@ -1105,12 +1105,12 @@ def diagnose(
     decided = _open_verdict(strategy.thresholds, ranking, before["selection"]["significant"],
                             loc_est.structured or loc_held.structured, loc_after, loc_after_held,
                             run.reproducible_significant(before["selection"]),
-                            probabilities=probabilities, left=left, margin=strategy.margin_evidence,
+                            probabilities=probabilities, left=left,
                             deterministic=_deterministic(run))
     verdict, effect, confidence = decided.as_tuple()
     best_left = left.get(ranking[0].effect, []) if ranking else []
     open_set = {"family_probabilities": probabilities, "evidence_tempering": tempering,
-                "margin_evidence": strategy.margin_evidence,
+                "margin_evidence": strategy.thresholds.margin_evidence,
                 "contenders": [{"family": f, "probability": probabilities[f]} for f in decided.contenders],
                 "structure_left": [c.to_json() for c in best_left], "where_left": where_left(best_left),
                 "verdict_reason": decided.reason,

@@ -24,7 +24,7 @@ from ..experiments import Measurement
 from ..statistics import START_MULTIPLES
 from .localize import ResidualRecord, localize, nrmse_of_products, systematic_products
 from .structure import StructureSettings
-from .verdict import MARGIN_EVIDENCE
+from .verdict import Thresholds
 
 
 @dataclass(frozen=True)
@@ -48,26 +48,6 @@ class DiagnosisSettings:
     final_max_iterations: int = 15
     tolerance: float = 1e-5
     max_effects: int = 1
-
-
-@dataclass(frozen=True)
-class Thresholds:
-    """Verdict thresholds (see :mod:`ema_uq.gap.attribute`). ``held_out_gain_min`` None: the
-    held-out gain is not required; ``gain_in_score`` False: the ranking score is ΔBIC alone
-    (times the signature factor)."""
-
-    bic_min: float = 25.0
-    held_out_gain_min: float | None = 25.0
-    shrink_min: float = 0.5
-    shrink_confident: float = 0.8
-    margin: float = 1.5
-    signature_weight: float = 0.25
-    gain_in_score: bool = True
-
-    def to_json(self) -> dict[str, Any]:
-        return {"BIC_MIN": self.bic_min, "HELD_OUT_GAIN_MIN": self.held_out_gain_min, "SHRINK_MIN": self.shrink_min,
-                "SHRINK_CONFIDENT": self.shrink_confident, "MARGIN": self.margin,
-                "SIGNATURE_WEIGHT": self.signature_weight}
 
 
 class GapMetric(Protocol):
@@ -154,8 +134,6 @@ class DiagnosisStrategy:
         did not see. The reference model's residual on them is the *healthy level* of every cell of
         the cell test (per sample): structure the healthy rig leaves too is not the fault's, and no
         candidate is asked to close it. Empty: the healthy level is white noise.
-    margin_evidence : 2 ln of the least Bayes factor by which a named family beats every other
-        family and the nominal model (:mod:`ema_uq.gap.verdict`).
     """
 
     name: str = "default"
@@ -172,7 +150,6 @@ class DiagnosisStrategy:
     replicate_prediction: Callable[..., list[np.ndarray] | None] | None = None
     structure: StructureSettings = StructureSettings()
     healthy_records: tuple[Measurement, ...] = ()
-    margin_evidence: float = MARGIN_EVIDENCE
 
     def __post_init__(self) -> None:
         if self.where_source not in ("larger z", "held-out"):

@@ -32,14 +32,11 @@ coloured noise and disturbances are not a mechanism).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
 from .result import CandidateScore
-
-if TYPE_CHECKING:                     # the strategy holds the margin, so it imports this module
-    from .strategy import Thresholds
 
 #: 2 ln of the least Bayes factor between the named family and any other ("very strong")
 MARGIN_EVIDENCE = 10.0
@@ -47,6 +44,27 @@ MARGIN_EVIDENCE = 10.0
 NONE_FAMILY = "none"
 #: autocorrelation lags read at most for the effective-sample fraction
 MAX_AUTOCORRELATION_LAG = 200
+
+
+@dataclass(frozen=True)
+class Thresholds:
+    """Verdict thresholds (see :mod:`ema_uq.gap.attribute` and this module). ``held_out_gain_min``
+    None: the held-out gain is not required; ``gain_in_score`` False: the ranking score and the
+    evidence are ΔBIC alone (the score times the signature factor); ``margin_evidence``: 2 ln of
+    the least Bayes factor by which a named family beats every other family and the nominal model."""
+
+    bic_min: float = 25.0
+    held_out_gain_min: float | None = 25.0
+    shrink_min: float = 0.5
+    shrink_confident: float = 0.8
+    margin_evidence: float = MARGIN_EVIDENCE
+    signature_weight: float = 0.25
+    gain_in_score: bool = True
+
+    def to_json(self) -> dict[str, Any]:
+        return {"BIC_MIN": self.bic_min, "HELD_OUT_GAIN_MIN": self.held_out_gain_min, "SHRINK_MIN": self.shrink_min,
+                "SHRINK_CONFIDENT": self.shrink_confident, "MARGIN_EVIDENCE": self.margin_evidence,
+                "SIGNATURE_WEIGHT": self.signature_weight}
 
 
 def passes(th: Thresholds, best: CandidateScore | None, significant: bool, reproducible: bool = True) -> bool:
@@ -148,7 +166,7 @@ def verdict(th: Thresholds, ranking: list[CandidateScore], significant: bool, st
             loc_after, loc_after_held, reproducible: bool = True, *,
             probabilities: Mapping[str, float] | None = None,
             left: Mapping[str, Sequence[Any]] | None = None,
-            margin: float = MARGIN_EVIDENCE, deterministic: bool | None = None) -> Verdict:
+            margin: float | None = None, deterministic: bool | None = None) -> Verdict:
     """The verdict from round 1's ``ranking`` (module docstring). ``probabilities``: family
     probabilities (None: from the untempered evidence); ``left``: {effect: cells left} of the
     best form of each family (None: no cell test); ``deterministic``: whether the operating state
@@ -157,7 +175,7 @@ def verdict(th: Thresholds, ranking: list[CandidateScore], significant: bool, st
     best = ranking[0] if ranking and np.isfinite(ranking[0].score) else None
     if passes(th, best, significant, reproducible):
         probabilities = family_probabilities(ranking, th) if probabilities is None else probabilities
-        close = within_margin(probabilities, margin)
+        close = within_margin(probabilities, th.margin_evidence if margin is None else margin)
         left = {} if left is None else left
         if NONE_FAMILY in close:
             return Verdict("unexplained", None, "low",
