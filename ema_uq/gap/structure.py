@@ -50,7 +50,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from .localize import LAG_NORM, LocalizationError, ResidualRecord, regime_masks, systematic_products
+from .localize import LAG_NORM, LocalizationError, ResidualRecord, _runs, regime_masks, systematic_products
 
 #: outputs that measure the position along the stroke, the first one the model has is used
 STROKE_OUTPUTS = ("y1", "position", "qm")
@@ -134,9 +134,8 @@ def cell_masks(records: Sequence[ResidualRecord], model, theta: np.ndarray | Non
             for k in range(STROKE_BINS):
                 upper = edges[k + 1] if k < STROKE_BINS - 1 else np.inf
                 masks[f"stroke:{k + 1}/{STROKE_BINS}"] = [(s >= edges[k]) & (s < upper) for s in strokes]
-        for name, sign in (("extend", 1.0), ("retract", -1.0)):
+        for name in ("extend", "retract", "rest"):
             masks[f"direction:{name}"] = []
-        masks["direction:rest"] = []
         for r, s in zip(records, strokes):
             v = np.gradient(s, r.time)
             moving = np.abs(v) > 0.1 * max(float(np.max(np.abs(v))), 1e-300)
@@ -181,11 +180,6 @@ def _mask_energies(records: Sequence[ResidualRecord], channels: Sequence[str], s
     for name, selected in masks.items():
         add(name, "mask", selected, None)
     return out
-
-
-def _runs(ok: np.ndarray) -> list[tuple[int, int]]:
-    edges = np.diff(np.concatenate([[0], ok.astype(np.int8), [0]]))
-    return list(zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)))
 
 
 def _band_energies(records: Sequence[ResidualRecord], channels: Sequence[str],
