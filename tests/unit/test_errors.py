@@ -12,6 +12,7 @@ import pytest
 
 import ema_uq
 from ema_uq import cli
+from ema_uq.cli import reporting
 from ema_uq.errors import EmaUqError
 
 
@@ -43,7 +44,7 @@ def test_user_error_is_one_line_exit_2(monkeypatch, capsys):
     def bad_input(args):
         raise EmaUqError("the study names no concept;\n  give one")
 
-    monkeypatch.setattr(cli, "_run_check_study", bad_input)
+    monkeypatch.setattr(reporting, "_run_check_study", bad_input)
     assert cli.main(["check-study", "x.yaml"]) == cli.EXIT_ERROR
     err = capsys.readouterr().err
     assert err == "ema-uq: error: the study names no concept; give one\n"
@@ -60,7 +61,7 @@ def test_a_fault_of_the_package_shows_its_traceback(monkeypatch, capsys, bug):
     def broken(args):
         raise bug
 
-    monkeypatch.setattr(cli, "_run_check_study", broken)
+    monkeypatch.setattr(reporting, "_run_check_study", broken)
     assert cli.main(["check-study", "x.yaml"]) == cli.EXIT_BUG
     err = capsys.readouterr().err
     assert "Traceback (most recent call last)" in err and type(bug).__name__ in err
