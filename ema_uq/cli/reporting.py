@@ -27,19 +27,18 @@ def _run_report(args: argparse.Namespace) -> str:
 
     import time
 
-    from ..report import build_report, html
+    from ..report import build_report
     from ..study import load_study
 
     study = load_study(args.study)
     if not Path(args.results).is_dir():
         raise CLIError(f"results folder {args.results} does not exist; run the workflow first")
     t0 = time.perf_counter()
-    html.PROGRESS = lambda line: print(f"{PROG} report: {line}, {time.perf_counter() - t0:.0f} s",
-                                       file=sys.stderr, flush=True)
-    try:
-        text = build_report(study, args.study, args.results)
-    finally:
-        html.PROGRESS = None
+
+    def progress(line: str) -> None:
+        print(f"{PROG} report: {line}, {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
+
+    text = build_report(study, args.study, args.results, progress=progress)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(text, encoding="utf-8")
