@@ -38,7 +38,8 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from .cranfield import START_S, set_point_period
+from .cranfield import START_S
+from .cranfield_cycles import set_point_period
 from ..experiments import Measurement
 
 FEATURES = ("load_kgf",
