@@ -169,7 +169,6 @@ def resolve_effects(model, specs: Sequence[str]):
 # --------------------------------------------------------------------------------------
 # provenance: one recipe for every result file
 # --------------------------------------------------------------------------------------
-
 def run_provenance(args: argparse.Namespace, inputs: Sequence[str] = (), *, seed: int | None = None,
                    settings: object = None, leave_out: Sequence[str] = ()) -> dict:
     """The provenance block of a verb's result (:func:`ema_uq.provenance.provenance`): checksums
