@@ -1,35 +1,10 @@
 """Where does the model depart from the data? Localisation of a fitted model's residual by
 channel, time window, operating regime and shaft order, with residual tests.
 
-The systematic part of a residual e = z - y (model error, as opposed to white measurement
-noise) is measured without knowing the noise level by short-lag products::
-
-    p_kc = e_kc · Σ_l w_l e_{k-l,c},   w_l = 1/5 at lags l = 1..5
-
-White noise contributes nothing to E[p] (its lags are uncorrelated). A systematic residual
-s contributes Σ_l w_l s_k s_{k-l}: in the frequency domain, its power weighted by
-W(f) = Σ_l w_l cos(2π f l Δt), 1 at low frequency, within 10 % of 1 up to 2 % of the
-sample rate (2 Hz at 100 Hz sampling) and 0.5 at 5 %. Averaged over samples, p is a short-lag
-autocovariance; ``systematic NRMSE`` of a channel is sqrt(mean p) / RMS(z), and of a data set
-the root of the channel-mean of mean p / RMS(z)². Under white noise of standard deviation
-σ_c, Σ_k p_kc has standard deviation σ_c² sqrt(n Σ w_l²) = σ_c² sqrt(n / 5) (distinct lag
-products are uncorrelated), which gives every z-score below. σ_c itself is estimated from
-first differences, σ_c² = mean((Δe_c)²) / 2, which a smooth systematic residual hardly changes.
-
-Model error that looks like white noise within a channel (impulsive or broadband error, fast
-dynamics, ripple aliased near the Nyquist frequency) is invisible to lag products, but it is
-rarely confined to one channel, while sensor noise is independent across channels. So the
-residual is first split by a factor model (:func:`factor_model`: R = L Lᵀ + diag(ψ), ML by EM,
-the number of factors q chosen by BIC — q = 0 for independent white noise) into a part the
-channels share and a unique part (Bartlett scores). Per sample and channel the systematic
-energy is then (common part)² minus its noise variance, plus the lag products of the unique
-part (:func:`systematic_products`); both terms are unbiased under white noise independent
-across channels. These figures localise the gap (channels, regimes, time windows) and measure
-it (:func:`systematic_nrmse`, the gap metric on held-out data). The lag products only have
-to catch the error a channel does not share — offsets and slow drifts of one sensor — so
-they can average over five lags, which halves their noise. The white-noise standard
-deviation of the data-set figure squared is about 0.45 · 4e-4 / sqrt(n m) for n samples of m
-channels with 2 % noise, i.e. a floor near 0.001 for the reference experiments.
+The systematic part of the residual (model error, as opposed to white measurement noise) is
+measured without knowing the noise level by short-lag products and a factor model of the
+errors the channels share (:mod:`ema_uq.gap.systematic`); these figures localise the gap
+(channels, regimes, time windows). The result types are in :mod:`ema_uq.gap.localization_result`.
 
 Regimes are sample masks computed from the fitted model's noise-free outputs and the inputs:
 
@@ -54,19 +29,24 @@ noise standard deviations. A regime *holds* the gap when z ≥ ``Z_REGIME`` and 
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any, ClassVar, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, Sequence
 
 import numpy as np
 from scipy import stats
 
 from ..statistics import LJUNG_BOX_LAGS, ljung_box, max_cross_correlation, speed_regimes
-from ..errors import EmaUqError
+from .localization_result import (ALPHA, MIN_ENRICHMENT, ChannelLocalization, Localization, OrderPeak,
+                                  RegimeLocalization)
+from .systematic import LAG_NORM, LAGS, LocalizationError, _runs, noise_std, systematic_products
 
+# The estimators of the systematic part and the result types stay importable from here, where
+# they were defined before they had rooms of their own (the diagnosis, the rigs and the tests
+# reach them so).
+from .localization_result import RegimeRms  # noqa: F401
+from .systematic import (LAG_WEIGHTS, MAX_FACTORS, PSI_FLOOR, FactorModel, complete_runs,  # noqa: F401
+                         factor_model, lag_products, nrmse_of_products, systematic_nrmse)
 
-LAG_WEIGHTS = (0.2,) * 5
-LAGS = len(LAG_WEIGHTS)
-LAG_NORM = float(sum(w * w for w in LAG_WEIGHTS))   # Σ w², variance factor of Σ p under white noise
 WINDOW_S = 1.0
 LOW_SPEED_FRACTION = 0.10
 REVERSAL_SWING_FRACTION = 0.05
@@ -77,22 +57,14 @@ SATURATION_FRACTION = 0.98
 HARMONICS = 6
 NEIGHBOUR_OFFSETS = (-0.30, -0.22, -0.15, 0.15, 0.22, 0.30)   # in harmonic spacing of the shaft
 PEAK_TO_NEIGHBOURS = 5.0
-ALPHA = 1e-3              # family-wise level of every residual test (Bonferroni inside a test)
 Z_REGIME = 4.0
-MIN_ENRICHMENT = 1.5
 DIRECTION_RATIO = 2.0
 MIN_SHARE = 0.10          # periodic/delay: least share of the gap to be named
 MAX_LAG = LJUNG_BOX_LAGS
-MAX_FACTORS = 8
-PSI_FLOOR = 1e-4          # least uniqueness (share of a channel's mean square) of the factor model
 
 MASK_REGIMES = ("reversal", "low_speed", "high_acceleration", "high_load", "saturation")
 REGIMES = ("reversal", "low_speed", "high_acceleration", "high_load", "direction", "saturation",
            "periodic", "delay")
-
-
-class LocalizationError(EmaUqError):
-    """Residual records that cannot be localised (shapes, no valid sample)."""
 
 
 @dataclass(frozen=True)
@@ -122,172 +94,10 @@ class ResidualRecord:
 
 
 # ----------------------------------------------------------------------------------------
-# estimators
-# ----------------------------------------------------------------------------------------
-def lag_products(residual: np.ndarray) -> np.ndarray:
-    """Per-sample systematic-energy estimate p (n, m) of a residual (n, m); NaN where undefined."""
-    e = np.asarray(residual, dtype=float)
-    acc = np.zeros_like(e)
-    for lag, weight in enumerate(LAG_WEIGHTS, start=1):
-        acc[lag:] += weight * e[:-lag]
-    p = e * acc
-    p[:LAGS] = np.nan
-    return p
-
-
-def noise_std(residual: np.ndarray) -> np.ndarray:
-    """Per-channel white-noise σ (m,) from first differences of a residual (n, m), NaN-aware."""
-    d = np.diff(np.asarray(residual, dtype=float), axis=0)
-    with np.errstate(invalid="ignore"):
-        return np.sqrt(np.nanmean(d ** 2, axis=0) / 2.0)
-
-
-@dataclass(frozen=True)
-class FactorModel:
-    """Residual covariance split as R = L Lᵀ + diag(ψ) (factor analysis, second moments about
-    zero): ``loadings`` L (m, q) and ``uniqueness`` ψ (m,) in channel units, q chosen by BIC."""
-
-    loadings: np.ndarray
-    uniqueness: np.ndarray
-
-    @property
-    def n_factors(self) -> int:
-        return self.loadings.shape[1]
-
-    def split(self, e: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(common part (n, m), unique part (n, m), noise variance of the common part (m,)) of
-        complete residual rows e (n, m), by Bartlett's unbiased factor scores."""
-        if self.n_factors == 0:
-            return np.zeros_like(e), e, np.zeros(e.shape[1])
-        lw = self.loadings / self.uniqueness[:, None]                     # Ψ⁻¹ L
-        inner = np.linalg.inv(self.loadings.T @ lw)                       # (Lᵀ Ψ⁻¹ L)⁻¹
-        common = e @ lw @ inner @ self.loadings.T
-        noise = np.einsum("cq,qr,cr->c", self.loadings, inner, self.loadings)
-        return common, e - common, noise
-
-
-def _factor_em(r: np.ndarray, q: int, iterations: int = 400) -> tuple[np.ndarray, np.ndarray, float]:
-    """ML factor analysis of a normalised second-moment matrix r (m, m) by EM: (L, ψ, mean log-likelihood)."""
-    m = r.shape[0]
-    if q == 0:
-        psi = np.diag(r).copy()
-        loadings = np.zeros((m, 0))
-    else:
-        w, v = np.linalg.eigh(r)
-        loadings = v[:, -q:] * np.sqrt(np.maximum(w[-q:] - 1.0, 1e-3))
-        psi = np.maximum(np.diag(r) - np.sum(loadings ** 2, axis=1), PSI_FLOOR)
-        for _ in range(iterations):
-            beta = np.linalg.solve(np.eye(q) + (loadings.T / psi) @ loadings, loadings.T / psi)   # E[f|e] = β e
-            second = np.eye(q) - beta @ loadings + beta @ r @ beta.T                            # E[f fᵀ]
-            updated = r @ beta.T @ np.linalg.inv(second)
-            psi = np.maximum(np.diag(r - updated @ beta @ r), PSI_FLOOR)
-            converged = np.max(np.abs(updated - loadings)) < 1e-6
-            loadings = updated
-            if converged:
-                break
-    model = loadings @ loadings.T + np.diag(psi)
-    sign, logdet = np.linalg.slogdet(model)
-    return loadings, psi, -0.5 * (logdet + np.trace(np.linalg.solve(model, r)))
-
-
-def factor_model(e: np.ndarray, max_factors: int = MAX_FACTORS) -> FactorModel:
-    """Factor model of complete residual rows e (n, m): q = 0..``max_factors`` by BIC.
-
-    Measurement noise is independent across channels, so a common factor is model error that
-    several channels share; q = 0 (every channel's noise its own) is what white independent
-    noise gives.
-    """
-    n, m = e.shape
-    scale = np.sqrt(np.mean(e ** 2, axis=0))
-    scale = np.where(scale > 0, scale, 1.0)
-    r = (e / scale).T @ (e / scale) / n
-    best, worse = None, 0
-    for q in range(0, min(max_factors, m - 1) + 1):
-        if (m - q) ** 2 < m + q and q > 0:      # more parameters than the covariance can identify
-            break
-        loadings, psi, loglik = _factor_em(r, q)
-        bic = -2.0 * n * loglik + (m * q - q * (q - 1) / 2) * np.log(n)
-        if best is None or bic < best[0]:
-            best, worse = (bic, loadings, psi), 0
-        else:
-            worse += 1
-            if worse == 2:                      # BIC has turned: more factors only fit noise
-                break
-    _, loadings, psi = best
-    return FactorModel(loadings * scale[:, None], psi * scale ** 2)
-
-
-def systematic_products(segments: Sequence[np.ndarray],
-                        factors: FactorModel | None = None) -> tuple[list[np.ndarray], np.ndarray, FactorModel]:
-    """Per-sample systematic-energy estimates of residual stretches: for each (n_i, m) stretch
-    (NaN rows allowed) an (n_i, m) array, NaN where undefined; also σ (m,) of the white noise
-    and the factor model used.
-
-    Energy = common part² minus its noise variance (factors shared by channels, any frequency)
-    + lag products of the unique part (each channel's own low-frequency error); both are
-    unbiased under white noise independent across channels.
-    """
-    rows = np.concatenate([seg[np.all(np.isfinite(seg), axis=1)] for seg in segments])
-    if rows.shape[0] < 10:
-        raise LocalizationError(f"only {rows.shape[0]} complete samples to measure the residual; give longer records")
-    factors = factor_model(rows) if factors is None else factors
-    out, diffs = [], []
-    for seg in segments:
-        ok = np.all(np.isfinite(seg), axis=1)
-        filled = np.where(ok[:, None], seg, 0.0)
-        common, unique, noise = factors.split(filled)
-        unique = np.where(ok[:, None], unique, np.nan)
-        energy = lag_products(unique) + common ** 2 - noise
-        out.append(np.where(ok[:, None], energy, np.nan))
-        diffs.append(np.diff(unique, axis=0))
-    d = np.concatenate(diffs)
-    with np.errstate(invalid="ignore"):
-        sigma = np.sqrt(np.nanmean(d ** 2, axis=0) / 2.0)
-    return out, np.where(sigma > 0, sigma, 1e-300), factors
-
-
-def complete_runs(residual: np.ndarray) -> list[np.ndarray]:
-    """The maximal NaN-free stretches of a residual (n, m)."""
-    ok = np.all(np.isfinite(residual), axis=1)
-    return [residual[a:b] for a, b in _runs(ok)]
-
-
-def systematic_nrmse(segments: Sequence[np.ndarray], spread: np.ndarray) -> tuple[float, np.ndarray, float, int]:
-    """The gap metric of residual stretches ``segments`` [(n_i, m)]: (data-set systematic
-    NRMSE, per-channel systematic NRMSE (m,), z of the data-set figure, number of common factors).
-
-    Per channel the systematic mean square is the mean of :func:`systematic_products`; the
-    data-set figure is the root of the channel-mean of that over RMS(z)² (``spread``²); z
-    compares the sum of lag products with its white-noise standard deviation σ² sqrt(n Σ w²)
-    (σ from first differences) — infinite when common factors were found (BIC).
-    """
-    parts, sigma, factors = systematic_products(segments)
-    return nrmse_of_products(np.concatenate(parts), sigma, factors.n_factors, spread)
-
-
-def nrmse_of_products(p: np.ndarray, sigma: np.ndarray, n_factors: int,
-                      spread: np.ndarray) -> tuple[float, np.ndarray, float, int]:
-    """:func:`systematic_nrmse` from the systematic products ``p`` (n, m) (NaN rows are left out)."""
-    p = p[np.all(np.isfinite(p), axis=1)]
-    mean_p = p.mean(axis=0)
-    per_channel = np.sqrt(np.maximum(mean_p, 0.0)) / spread
-    total = float(np.sqrt(max(float(np.mean(mean_p / spread ** 2)), 0.0)))
-    z = float(np.sum(p / sigma ** 2) / np.sqrt(p.size * LAG_NORM))
-    return total, per_channel, z, n_factors
-
-
-# ----------------------------------------------------------------------------------------
 # regimes
 # ----------------------------------------------------------------------------------------
 def _output(model, outputs: np.ndarray, name: str) -> np.ndarray:
     return outputs[:, model.outputs.index(name)]
-
-
-def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
-    """Maximal runs [start, stop) of True."""
-    edges = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
-    return list(zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)))
-
 
 def regime_masks(model, theta: np.ndarray, constants: np.ndarray, time: np.ndarray, inputs: np.ndarray,
                  outputs: np.ndarray) -> dict[str, np.ndarray]:
@@ -349,221 +159,6 @@ def shaft_ratios(model, outputs: np.ndarray, moving: np.ndarray) -> dict[str, fl
             if abs(r) > 1e-6 and not any(abs(abs(r) - v) < 1e-3 * v for v in ratios.values()):
                 ratios[name] = abs(r)
     return ratios
-
-
-# ----------------------------------------------------------------------------------------
-# results
-# ----------------------------------------------------------------------------------------
-@dataclass
-class ChannelLocalization:
-    """Per-channel figures: systematic NRMSE and its share of the gap, z of its systematic energy,
-    Ljung-Box p, bias z (mean residual in σ/sqrt(n), σ the record's own noise; the largest over
-    records, Bonferroni-adjusted), the largest normalised cross-correlation
-    with an input, and the least-squares delay τ [s] of the residual on the output derivative."""
-
-    channel: str
-    systematic_nrmse: float
-    share: float
-    z: float
-    ljung_box_p: float
-    bias_z: float
-    max_input_xcorr: float
-    delay_s: float
-
-
-@dataclass
-class RegimeLocalization:
-    """One regime: its sample ``fraction``, ``share`` of the gap, ``enrichment`` = share /
-    fraction, ``z``, whether it ``holds_gap``, and ``systematic_nrmse`` — the systematic NRMSE
-    of every channel over the regime's samples (comparable between models on the same data;
-    NaN for the spectral regimes ``periodic`` and ``delay``)."""
-
-    name: str
-    fraction: float
-    share: float
-    enrichment: float
-    z: float
-    holds_gap: bool
-    detail: str = ""
-    systematic_nrmse: float = float("nan")
-
-
-@dataclass
-class OrderPeak:
-    """Residual power at harmonic ``harmonic`` of shaft ``shaft`` (motor order ``order``), in
-    units of the noise power (``power_ratio``) and of the neighbouring orders (``neighbour_ratio``)."""
-
-    channel: str
-    shaft: str
-    harmonic: int
-    order: float
-    power_ratio: float
-    neighbour_ratio: float
-    share: float
-
-
-@dataclass
-class Localization:
-    """Where a fitted model departs from the data (see the module docstring for every figure).
-
-    ``windows`` maps a record name to {"time": centres [s], "systematic_nrmse": per window,
-    "z": per window, "phi_r_deg": mean command per window}.
-    """
-
-    channels: list[ChannelLocalization]
-    regimes: list[RegimeLocalization]
-    peaks: list[OrderPeak]
-    windows: dict[str, dict[str, list[float]]]
-    systematic_nrmse: float
-    z: float
-    tests: dict[str, Any]
-    structured: bool
-    reasons: list[str] = field(default_factory=list)
-
-    # --- the verdict-facing views ---------------------------------------------------------
-    @property
-    def where_regimes(self) -> list[str]:
-        """Regimes that hold the gap, largest share first."""
-        held = [r for r in self.regimes if r.holds_gap]
-        return [r.name for r in sorted(held, key=lambda r: -r.share)]
-
-    def where_channels(self, relative: float = 0.25) -> list[str]:
-        """Channels with significant systematic energy and at least ``relative`` of the largest
-        channel's systematic NRMSE, largest first."""
-        z_thr = stats.norm.isf(ALPHA / max(len(self.channels), 1))
-        sig = [c for c in self.channels if c.z >= z_thr]
-        if not sig:
-            return []
-        top = max(c.systematic_nrmse for c in sig)
-        keep = [c for c in sig if c.systematic_nrmse >= relative * top]
-        return [c.channel for c in sorted(keep, key=lambda c: -c.systematic_nrmse)]
-
-    def regime(self, name: str) -> RegimeLocalization:
-        for r in self.regimes:
-            if r.name == name:
-                return r
-        raise KeyError(name)
-
-    def signature_match(self, signature: Sequence[str]) -> float:
-        """Fraction (0..1) of an effect's signature regimes that hold the gap, graded by enrichment
-        for mask regimes (enrichment 1 -> 0, ``MIN_ENRICHMENT`` or more with significance -> 1)."""
-        if not signature:
-            return 0.0
-        grades = []
-        for name in signature:
-            try:
-                r = self.regime(name)
-            except KeyError:
-                grades.append(0.0)
-                continue
-            if r.holds_gap:
-                grades.append(1.0)
-            elif r.z > 0 and np.isfinite(r.enrichment):
-                grades.append(float(np.clip((r.enrichment - 1.0) / (MIN_ENRICHMENT - 1.0), 0.0, 1.0)) * 0.5)
-            else:
-                grades.append(0.0)
-        return float(np.mean(grades))
-
-    # --- reporting -----------------------------------------------------------------------
-    def summary(self) -> str:
-        rows = [f"Residual localisation: systematic NRMSE {self.systematic_nrmse:.4g} (z = {self.z:.1f}), "
-                f"{'structured' if self.structured else 'consistent with white noise'}"
-                + (f" ({'; '.join(self.reasons)})" if self.reasons else ""),
-                f"  {'channel':<10} {'sys.NRMSE':>10} {'share':>7} {'z':>8} {'LB p':>8} {'bias z':>7} "
-                f"{'xcorr':>6} {'tau [ms]':>8}"]
-        for c in sorted(self.channels, key=lambda c: -c.systematic_nrmse):
-            rows.append(f"  {c.channel:<10} {c.systematic_nrmse:>10.4g} {c.share:>7.3f} {c.z:>8.1f} "
-                        f"{c.ljung_box_p:>8.2g} {c.bias_z:>7.1f} {c.max_input_xcorr:>6.3f} {1e3 * c.delay_s:>8.2f}")
-        rows.append(f"  {'regime':<18} {'fraction':>8} {'share':>7} {'enrich':>7} {'z':>8}  holds gap")
-        for r in sorted(self.regimes, key=lambda r: -r.share):
-            rows.append(f"  {r.name:<18} {r.fraction:>8.3f} {r.share:>7.3f} {r.enrichment:>7.2f} {r.z:>8.1f}  "
-                        f"{'yes' if r.holds_gap else 'no'} {r.detail}")
-        for p in self.peaks[:5]:
-            rows.append(f"  peak: {p.channel} at harmonic {p.harmonic} of {p.shaft} (motor order {p.order:.3g}), "
-                        f"{p.power_ratio:.0f}x noise, {p.neighbour_ratio:.0f}x neighbours")
-        return "\n".join(rows)
-
-    def to_json(self) -> dict[str, Any]:
-        return {
-            "systematic_nrmse": self.systematic_nrmse, "z": self.z, "structured": self.structured,
-            "reasons": list(self.reasons), "tests": self.tests,
-            "channels": [vars(c).copy() for c in self.channels],
-            "regimes": [vars(r).copy() for r in self.regimes],
-            "peaks": [vars(p).copy() for p in self.peaks],
-            "windows": self.windows,
-        }
-
-    @classmethod
-    def from_json(cls, data: Mapping[str, Any]) -> "Localization":
-        def numbers(row):  # JSON null is a NaN figure
-            return {k: float("nan") if v is None else v for k, v in row.items()}
-
-        return cls(
-            channels=[ChannelLocalization(**numbers(c)) for c in data["channels"]],
-            regimes=[RegimeLocalization(**numbers(r)) for r in data["regimes"]],
-            peaks=[OrderPeak(**numbers(p)) for p in data.get("peaks", [])],
-            windows={k: dict(v) for k, v in data.get("windows", {}).items()},
-            systematic_nrmse=float(data["systematic_nrmse"]), z=float(data["z"]),
-            tests=dict(data.get("tests", {})), structured=bool(data["structured"]),
-            reasons=list(data.get("reasons", [])),
-        )
-
-
-@dataclass
-class RegimeRms:
-    """A coarser localisation for rigs whose records support no residual tests of the
-    actuator kind (e.g. EMPS): the RMS of one residual signal (``channel``, in its unit)
-    overall and per operating regime. ``regimes`` maps a regime to {"rms", "ratio" (to the
-    overall RMS), "share_of_samples"}; a regime holds the gap when its ratio exceeds
-    ``hold_ratio``. No residual test is run (``structured`` False, ``z`` NaN)."""
-
-    KIND: ClassVar[str] = "regime_rms"
-    channel: str
-    rms: float
-    regimes: dict[str, dict[str, float]]
-    hold_ratio: float = 1.2
-    z: float = float("nan")
-    structured: bool = False
-
-    @classmethod
-    def of(cls, channel: str, residual: np.ndarray, masks: Mapping[str, np.ndarray],
-           hold_ratio: float = 1.2) -> "RegimeRms":
-        """From a residual (n,) and regime masks (n,) over the same samples (regimes without a sample are left out)."""
-        overall = float(np.sqrt(np.mean(residual ** 2)))
-        regimes = {}
-        for name, mask in masks.items():
-            if mask.any():
-                rms = float(np.sqrt(np.mean(residual[mask] ** 2)))
-                regimes[name] = {"rms": rms, "ratio": rms / overall, "share_of_samples": float(mask.mean())}
-        return cls(channel, overall, regimes, hold_ratio)
-
-    @property
-    def where_regimes(self) -> list[str]:
-        """Regimes whose RMS ratio exceeds ``hold_ratio``, largest first."""
-        ranked = sorted(self.regimes.items(), key=lambda kv: -kv[1]["ratio"])
-        return [name for name, r in ranked if r["ratio"] > self.hold_ratio]
-
-    def where_channels(self) -> list[str]:
-        return [self.channel]
-
-    def signature_match(self, signature: Sequence[str]) -> float:
-        """Fraction of the signature regimes that hold the gap."""
-        return float(np.mean([name in self.where_regimes for name in signature])) if signature else 0.0
-
-    def summary(self) -> str:
-        rows = [f"Residual {self.channel} by regime: RMS {self.rms:.4g} overall"]
-        rows += [f"  {name:<18} RMS {r['rms']:>9.4g}  ratio {r['ratio']:>5.2f}  samples {r['share_of_samples']:.3f}"
-                 for name, r in self.regimes.items()]
-        return "\n".join(rows)
-
-    def to_json(self) -> dict[str, Any]:
-        return {"kind": self.KIND, "channel": self.channel, "rms": self.rms, "regimes": self.regimes,
-                "hold_ratio": self.hold_ratio, "where_regimes": self.where_regimes}
-
-    @classmethod
-    def from_json(cls, data: Mapping[str, Any]) -> "RegimeRms":
-        return cls(data["channel"], float(data["rms"]), {k: dict(v) for k, v in data["regimes"].items()},
-                   float(data.get("hold_ratio", 1.2)))
 
 
 # ----------------------------------------------------------------------------------------

@@ -18,7 +18,11 @@ VISIBLE = 2.0 * math.sqrt(2.0 * N_SAMPLES)  # twice the chi-square's pure-noise 
 
 
 def test_module_uses_no_package_equations():
-    tree = ast.parse(inspect.getsource(V))
+    from ema_uq.gap import variant_catalogue, variant_kernel
+
+    # the simulator's rooms: the records, the variants' descriptions and the kernel
+    tree = ast.Module(body=[node for module in (V, variant_catalogue, variant_kernel)
+                            for node in ast.parse(inspect.getsource(module)).body], type_ignores=[])
     imported = set()
     for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom):

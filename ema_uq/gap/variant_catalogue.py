@@ -1,0 +1,287 @@
+"""The effect variants of the independent simulator (:mod:`ema_uq.gap.variants`): what each
+one is, the catalogue family it belongs to (or none), its parameters with their bounds and
+draw ranges, and how random parameters are drawn and checked.
+
+How the variants differ from the catalogue's forms
+--------------------------------------------------
+``backlash_two_mass`` (family ``backlash``)
+    Catalogue: kinematic play operator in the bevel gear(s), load side held by its friction,
+    relaxation state. Here: ONE dead band +-delta at the motor coupling (LT/HS: after the
+    magnetic gear) inside a compliant two-mass drive train - motor and load inertia (split of
+    J by ``load_share``), a spring of mode ``frequency`` (25-60 Hz) and a damper that act only
+    outside the dead band (no torque inside it, no pulling torque at separation). ``delta`` is
+    the half play seen at the carriage [m].
+``backlash_output_deadzone`` (``backlash``)
+    Play between the screw nut and the carriage: the carriage follows the nut through an exact
+    play operator of half width ``delta`` [m] (projected after every RK4 step); the rig measures
+    the carriage (y1, y2, and the position loop closes on it); the load reaches the screw only
+    while a flank is in contact.
+``stribeck_exponential`` / ``stribeck_gaussian`` / ``stribeck_rational`` (``stribeck``)
+    Catalogue: C (1 + rho exp(-(v/v_s)^2)) tanh(v/eps), v referred to the screw shaft. Here v
+    is each friction term's own shaft speed and the curves are C (1 + rho exp(-|v|/v_s)),
+    C (1 + rho exp(-(|v|/v_s)^2)) with the algebraic sign v / sqrt(v^2 + eps^2), and
+    C (1 + rho / (1 + (v/v_s)^2)).
+``torque_ripple_harmonics`` (``torque_ripple``)
+    Catalogue: one harmonic k_n A sin(n_p theta + phi). Here three: sum_k A_k sin(k n_p theta +
+    phi_k), k = 1..3, amplitudes in N m, n_p as the catalogue (HT/LS 6, LT/HS 4).
+``sensor_delay_hermite`` / ``sensor_delay_allpass`` (``sensor_delay``)
+    Catalogue: linear interpolation. Here: cubic Hermite (Catmull-Rom) interpolation, or a
+    Thiran all-pass IIR filter (order <= 3, maximally flat group delay tau; phase-dispersive
+    like a real sensor filter). tau is drawn away from multiples of the sample time.
+``shaft_compliance_two_mass`` (``shaft_compliance``)
+    Catalogue: modal form with period, damping ratio and load fraction. Here: absolute
+    coordinates (load speed and angle as states), the load share drawn from 0.6-0.8 (HT/LS) /
+    0.45-0.65 (LT/HS), mode frequency [Hz] and damping ratio.
+``load_friction_linear`` / ``load_friction_power`` (``load_dependent_friction``)
+    Catalogue: C_TS + mu r |F|. Here: mu r (sqrt(F^2 + F0^2) - F0), or a power law
+    mu r F_ref (|F|_s / F_ref)^1.2 - mu r F_ref (F0 / F_ref)^1.2, |F|_s = sqrt(F^2 + F0^2),
+    F0 = 200 N, F_ref = 10 kN, on both ball screws.
+``ujoint_cardan`` (``ujoint_kinematics``)
+    Catalogue: eq. 8 at the design angles scaled by a ripple factor, one yoke phase for both
+    stations (``ujoint_kinematics``) or a factor and a phase per station (``ujoint_stations``). Here: the
+    Cardan relation tan(phi_out) = tan(phi_in) / cos(beta) differentiated,
+    d phi_out / d phi_in = cos(beta) / (cos^2(beta) cos^2(phi_in) + sin^2(phi_in)), at a rig joint
+    angle beta_k larger than designed and a yoke phase per station; the ideal joint passes the
+    screw torque back times the same ratio (power balance), on top of the model's 1/cos(beta).
+
+Out of the catalogue (family ``None``): ``motor_torque_lag`` (first-order lag tau_e of the motor
+torque; HT/LS measures the lagged current), ``current_sensor_error`` (measured I_A = (1 + g) I_A
++ offset), ``position_friction_spot`` (Coulomb friction bump on screw 1 over a raised-cosine
+window of carriage position) and ``load_follows_position`` (the rig's load is set from the
+measured carriage position, not from the command: each carriage feels an extra
+-stiffness / 2 x (y_k - k_y phi_r)). A lightly damped flap resonance was tried and left out:
+the position loops move the carriages so smoothly (bandwidth ~1 rad/s) that even a 20 t
+equivalent flap mass at 3-10 Hz changes the records by less than 2 % noise shows.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Mapping
+
+import numpy as np
+
+from ..errors import EmaUqError
+
+TWO_PI = 2.0 * math.pi
+CONCEPTS = ("htls", "lths")
+FAMILIES = ("backlash", "stribeck", "torque_ripple", "sensor_delay", "shaft_compliance",
+            "load_dependent_friction", "ujoint_kinematics")
+DELAY_CLEARANCE = 0.1       # drawn delays stay this fraction of a sample away from a multiple
+
+
+class VariantError(EmaUqError):
+    """An unknown variant or concept, or a variant parameter that is missing, unknown or out of bounds."""
+
+
+# ------------------------------------------------------------------------------------------
+# variant descriptions
+# ------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class VariantParameter:
+    """One variant parameter: unit, physical bounds [lower, upper] (checked on every value)
+    and the draw range [low, high] (per concept where ``concept_ranges`` says so).
+
+    ``kind``: ``magnitude`` (drawn log-uniform; ``weak`` = the end that is least visible,
+    "low" or "high"), ``phase`` (uniform in [0, 2 pi)) or ``shape`` (uniform in the range).
+    """
+
+    name: str
+    unit: str
+    low: float
+    high: float
+    kind: str
+    lower: float
+    upper: float
+    description: str
+    weak: str = "low"
+    concept_ranges: Mapping[str, tuple[float, float]] = field(default_factory=dict)
+
+    def draw_range(self, concept: str | None) -> tuple[float, float]:
+        if self.concept_ranges:
+            if concept not in self.concept_ranges:
+                raise VariantError(f"parameter {self.name} has a range per concept; give concept= one of "
+                                   f"{', '.join(self.concept_ranges)}")
+            return self.concept_ranges[concept]
+        return self.low, self.high
+
+
+@dataclass(frozen=True)
+class Variant:
+    """One effect variant: ``family`` is the catalogue effect the diagnosis should name
+    (``None``: outside the catalogue, the right verdict is ``unexplained``)."""
+
+    name: str
+    family: str | None
+    description: str
+    parameters: tuple[VariantParameter, ...]
+    kernel_id: int                 # dynamics inside the RK4 kernel (0: post-processing only)
+    step_divisor: int = 1          # RK4 step = the concept's step / step_divisor
+
+    @property
+    def parameter_names(self) -> tuple[str, ...]:
+        return tuple(p.name for p in self.parameters)
+
+    def weakest(self, concept: str) -> dict[str, float]:
+        """Every magnitude at its least visible end, phases 0, shapes mid-range."""
+        out = {}
+        for p in self.parameters:
+            low, high = p.draw_range(concept)
+            if p.kind == "magnitude":
+                out[p.name] = low if p.weak == "low" else high
+            else:
+                out[p.name] = 0.0 if p.kind == "phase" else 0.5 * (low + high)
+        return out
+
+    def ranges(self, concept: str | None = None) -> dict[str, tuple[float, float]]:
+        return {p.name: p.draw_range(concept) for p in self.parameters}
+
+
+def _mag(name, unit, low, high, lower, upper, description, weak="low", per_concept=None):
+    return VariantParameter(name, unit, low, high, "magnitude", lower, upper, description, weak,
+                            per_concept or {})
+
+
+def _phase(name, description):
+    return VariantParameter(name, "rad", 0.0, TWO_PI, "phase", -1e3, 1e3, description)
+
+
+def _shape(name, unit, low, high, lower, upper, description, per_concept=None):
+    return VariantParameter(name, unit, low, high, "shape", lower, upper, description, "low", per_concept or {})
+
+
+# kernel ids of the dynamic variants
+(V_NONE, V_BACKLASH_TWO_MASS, V_DEADZONE, V_STRIBECK_EXP, V_STRIBECK_GAUSS, V_STRIBECK_RATIONAL, V_RIPPLE,
+ V_SHAFT_TWO_MASS, V_LOAD_LINEAR, V_LOAD_POWER, V_CARDAN, V_TORQUE_LAG, V_SPOT, V_LOAD_FOLLOW) = range(14)
+
+_STRIBECK = (_mag("ratio", "1", 0.4, 3.0, 0.0, 50.0, "breakaway excess C_s / C - 1 of every Coulomb term"),
+             _mag("speed", "rad/s", 0.5, 4.0, 1e-4, 1e3, "Stribeck speed of each term's own shaft"))
+_DELAY = (_mag("tau", "s", 0.006, 0.035, 0.0, 0.5, "delay of every measured channel"),)
+_MODE = (_mag("damping", "1", 0.03, 0.2, 1e-4, 2.0, "damping ratio of the torsional mode", weak="high"),)
+
+
+def _build_variants() -> dict[str, Variant]:
+    variants = (
+        Variant("backlash_two_mass", "backlash",
+                "dead band +-delta in a compliant two-mass drive train between motor and screws",
+                (_mag("delta", "m", 4e-5, 3e-4, 0.0, 0.01, "half play seen at the carriage"),
+                 _mag("frequency", "Hz", 25.0, 60.0, 1.0, 500.0, "torsional mode in contact", weak="high"),
+                 *_MODE,
+                 _shape("load_share", "1", 0.3, 0.7, 0.05, 0.95, "load-side share of the inertia J")),
+                V_BACKLASH_TWO_MASS),
+        Variant("backlash_output_deadzone", "backlash",
+                "play between screw nut and carriage; the rig measures the carriage",
+                (_mag("delta", "m", 3e-5, 3e-4, 0.0, 0.01, "half play between nut and carriage"),), V_DEADZONE),
+        Variant("stribeck_exponential", "stribeck", "C (1 + rho exp(-|v|/v_s)) on every Coulomb term",
+                _STRIBECK, V_STRIBECK_EXP),
+        Variant("stribeck_gaussian", "stribeck",
+                "C (1 + rho exp(-(|v|/v_s)^2)) v / sqrt(v^2 + eps^2) on every Coulomb term",
+                _STRIBECK, V_STRIBECK_GAUSS),
+        Variant("stribeck_rational", "stribeck", "C (1 + rho / (1 + (v/v_s)^2)) on every Coulomb term",
+                _STRIBECK, V_STRIBECK_RATIONAL),
+        Variant("torque_ripple_harmonics", "torque_ripple", "motor torque ripple sum_k A_k sin(k n_p theta + phi_k)",
+                tuple(_mag(f"amplitude{k}", "N m", 0.0, 0.0, 0.0, 1e3, f"ripple amplitude of harmonic {k}",
+                           per_concept={"htls": (0.3, 3.0), "lths": (0.012, 0.1)}) for k in (1, 2, 3))
+                + tuple(_phase(f"phase{k}", f"phase of harmonic {k} at theta = 0") for k in (1, 2, 3)),
+                V_RIPPLE, step_divisor=4),
+        Variant("sensor_delay_hermite", "sensor_delay", "every channel delayed by tau, cubic Hermite interpolation",
+                _DELAY, V_NONE),
+        Variant("sensor_delay_allpass", "sensor_delay", "every channel through a Thiran all-pass of delay tau",
+                _DELAY, V_NONE),
+        Variant("shaft_compliance_two_mass", "shaft_compliance",
+                "torsional spring and damper between motor and drive train, two masses in absolute coordinates",
+                (_mag("frequency", "Hz", 15.0, 50.0, 1.0, 500.0, "torsional mode", weak="high"), *_MODE,
+                 _shape("load_share", "1", 0.0, 0.0, 0.05, 0.95, "load-side share of the inertia J",
+                        per_concept={"htls": (0.6, 0.8), "lths": (0.45, 0.65)})),
+                V_SHAFT_TWO_MASS),
+        Variant("load_friction_linear", "load_dependent_friction", "ball-screw friction + mu r (sqrt(F^2 + F0^2) - F0)",
+                (_mag("mu", "1", 1.5e-3, 1.5e-2, 0.0, 0.5, "load coefficient of the ball-screw friction"),),
+                V_LOAD_LINEAR),
+        Variant("load_friction_power", "load_dependent_friction",
+                "ball-screw friction + mu r F_ref (|F|/F_ref)^1.2 (smoothed |F|)",
+                (_mag("mu", "1", 1.5e-3, 1.5e-2, 0.0, 0.5, "load coefficient at F_ref = 10 kN"),), V_LOAD_POWER),
+        Variant("ujoint_cardan", "ujoint_kinematics", "exact Cardan speed ratio at rig joint angles above design",
+                (_mag("beta1", "rad", math.radians(8.0), math.radians(16.0), 0.0, 1.2, "rig joint angle, station 1"),
+                 _mag("beta2", "rad", math.radians(10.0), math.radians(20.0), 0.0, 1.2, "rig joint angle, station 2"),
+                 _phase("phase1", "yoke phase of station 1"), _phase("phase2", "yoke phase of station 2")),
+                V_CARDAN),
+        Variant("motor_torque_lag", None, "first-order lag of the motor torque",
+                (_mag("tau", "s", 0.0, 0.0, 2.5e-4, 1.0, "time constant of the torque lag",
+                      per_concept={"htls": (0.005, 0.02), "lths": (3e-4, 2e-3)}),), V_TORQUE_LAG),
+        Variant("current_sensor_error", None, "measured I_A = (1 + gain) I_A + offset",
+                (_mag("gain", "1", 0.03, 0.08, -0.5, 0.5, "relative gain error of the current sensor"),
+                 _mag("offset", "A", 0.2, 1.0, -100.0, 100.0, "offset of the current sensor")), V_NONE),
+        Variant("position_friction_spot", None, "Coulomb friction bump on screw 1 over a window of carriage position",
+                (_mag("friction", "N m", 2.0, 6.0, 0.0, 100.0, "peak extra Coulomb torque at screw 1"),
+                 _shape("position", "m", 0.06, 0.18, -1.0, 1.0, "carriage position of the spot centre"),
+                 _shape("width", "m", 0.02, 0.05, 1e-4, 1.0, "half width of the raised-cosine window")), V_SPOT),
+        Variant("load_follows_position", None,
+                "the rig load follows the measured carriage position: extra -stiffness/2 (y_k - k_y phi_r)",
+                (_mag("stiffness", "N/m", 2e4, 1.2e5, 0.0, 1e7,
+                      "load gradient with carriage position (the profiles' own: ~1.1e5 N/m)"),), V_LOAD_FOLLOW),
+    )
+    return {v.name: v for v in variants}
+
+
+VARIANTS: dict[str, Variant] = _build_variants()
+
+
+def get_variant(name: str) -> Variant:
+    try:
+        return VARIANTS[name]
+    except (KeyError, TypeError):
+        raise VariantError(f"unknown variant {name!r}; choose one of: {', '.join(VARIANTS)}") from None
+
+
+def _check_concept(concept: str) -> str:
+    if concept not in CONCEPTS:
+        raise VariantError(f"unknown concept {concept!r} for the independent simulator; choose htls or lths")
+    return concept
+
+
+def draw_variant_parameters(name: str, rng: np.random.Generator, concept: str | None = None) -> dict[str, float]:
+    """Random parameters of variant ``name``: magnitudes log-uniform over their range, phases
+    uniform in [0, 2 pi), shapes uniform. ``concept`` is needed by variants whose ranges differ
+    per concept (``torque_ripple_harmonics``, ``shaft_compliance_two_mass``). Sensor delays are
+    redrawn until they lie at least ``DELAY_CLEARANCE`` samples away from a multiple of 10 ms."""
+    variant = get_variant(name)
+    while True:
+        values = {}
+        for p in variant.parameters:
+            low, high = p.draw_range(concept)
+            if p.kind == "magnitude":
+                values[p.name] = float(math.exp(rng.uniform(math.log(low), math.log(high))))
+            elif p.kind == "phase":
+                values[p.name] = float(rng.uniform(0.0, TWO_PI))
+            else:
+                values[p.name] = float(rng.uniform(low, high))
+        if variant.family != "sensor_delay":
+            return values
+        lag = values["tau"] / 0.01
+        if abs(lag - round(lag)) >= DELAY_CLEARANCE:
+            return values
+
+
+def check_variant_parameters(name: str, params: Mapping[str, float]) -> dict[str, float]:
+    """The parameters as floats; a missing, unknown, non-finite or out-of-bounds one is a VariantError."""
+    variant = get_variant(name)
+    params = dict(params)
+    names = variant.parameter_names
+    stray = [k for k in params if k not in names]
+    if stray:
+        raise VariantError(f"variant {name} has no parameter {stray[0]!r}; its parameters are {', '.join(names)}")
+    missing = [k for k in names if k not in params]
+    if missing:
+        raise VariantError(f"variant {name} needs a value for {', '.join(missing)}; "
+                           f"draw them with draw_variant_parameters({name!r}, rng)")
+    out = {}
+    for p in variant.parameters:
+        try:
+            value = float(params[p.name])
+        except (TypeError, ValueError):
+            raise VariantError(f"variant {name}: {p.name} = {params[p.name]!r} is not a number") from None
+        if not (math.isfinite(value) and p.lower <= value <= p.upper):
+            raise VariantError(f"variant {name}: {p.name} = {value:g} {p.unit} lies outside "
+                               f"[{p.lower:g}, {p.upper:g}]; give a finite value inside")
+        out[p.name] = value
+    return out
