@@ -30,7 +30,12 @@ exist. The
 evaluation block refuses to run when the sources' hash differs from the frozen one: re-freeze
 with ``--freeze`` (new hash and a NEW evaluation block; the old block is recorded as spent,
 never to be reused). ``--freeze`` on a protocol whose hash still holds keeps its blocks
-(``--new-evaluation`` draws a fresh evaluation block anyway).
+(``--new-evaluation`` draws a fresh evaluation block anyway). A change meant to move code
+without changing a number (a module split) is attested instead with ``--attest-equivalent N``:
+N outcomes of the evaluation block already computed on the frozen sources are re-run on the
+current ones, and only if every stored value comes out identical is the current hash recorded
+under ``sources.equivalent`` (with the cases re-run), after which the block continues into the
+same outcome folder; any differing value refuses the attestation.
 
 Usage: python benchmarks/gap.py [--concept htls|lths|both] [--sensors full realistic] [--jobs N]
                                 [--quick] [--none-per-set N] [--kinds ...] [--none-from K] [--seed N]
@@ -38,6 +43,7 @@ Usage: python benchmarks/gap.py [--concept htls|lths|both] [--sensors full reali
        python benchmarks/gap.py --protocol benchmarks/gap_protocol.yaml --block development|evaluation
                                 [--jobs N] [--chunk I/N] [--results DIR]
        python benchmarks/gap.py --protocol benchmarks/gap_protocol.yaml --freeze [--new-evaluation]
+       python benchmarks/gap.py --protocol benchmarks/gap_protocol.yaml --attest-equivalent N [--results DIR]
 """
 from __future__ import annotations
 
@@ -57,7 +63,7 @@ import yaml
 from ema_uq.experiments import Measurement, add_noise, deploy_retract, validation
 from ema_uq.gap import diagnose
 from ema_uq.gap import attribute, predictable, structure, verdict
-from ema_uq.gap.selfcheck import (CALIBRATION_SEEDS, DEFAULT_SEED, KINDS, NONE_PER_SET, SENSOR_SETS, TARGET_FALSE_ALARM,
+from ema_uq.gap.selfcheck import (CALIBRATION_SEEDS, CaseOutcome, run_case, DEFAULT_SEED, KINDS, NONE_PER_SET, SENSOR_SETS, TARGET_FALSE_ALARM,
                                   TARGET_NAMES, TARGET_TOP1, TARGETS, SelfCheckResult, catalogue_families, family_of,
                                   self_check)
 from ema_uq.gap.strategy import DiagnosisSettings, Thresholds, strategy_for
@@ -227,13 +233,86 @@ def freeze(path, *, root: Path = ROOT, development: list[int] | None = None, eva
 def check_sources(protocol: dict, *, root: Path = ROOT) -> str | None:
     """None when the sources still hash to the frozen value; else a one-line message naming the fix."""
     combined, each = hash_sources(root)
-    if combined == protocol["sources"]["sha256"]:
+    if combined in accepted_hashes(protocol):
         return None
     frozen = protocol["sources"]["files"]
     changed = sorted(f for f in set(each) | set(frozen) if each.get(f) != frozen.get(f))
     return (f"gap sources changed since the protocol was frozen ({', '.join(changed)}); the evaluation block "
             f"is refused: re-freeze with `python benchmarks/gap.py --protocol <file> --freeze` (new hash and a "
-            f"new evaluation block, the old one recorded as spent)")
+            f"new evaluation block, the old one recorded as spent), or, for a change that moves code without "
+            f"changing what it computes, attest it with `--attest-equivalent N`")
+
+
+def accepted_hashes(protocol: dict) -> list[str]:
+    """The frozen sources' hash and the hashes attested equivalent to it (a refactor whose
+    outcomes were re-run and found identical, value for value)."""
+    return [protocol["sources"]["sha256"]] + [e["sha256"] for e in protocol["sources"].get("equivalent") or []]
+
+
+#: outcome keys that measure the run rather than the method: left out of the equivalence check
+RUN_KEYS = frozenset({"wall_time_s", "index"})
+
+
+def _differences(a, b, where: str = "") -> list[str]:
+    """Paths at which two JSON values differ (floats compared exactly)."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        out = []
+        for key in sorted(set(a) | set(b)):
+            if key in RUN_KEYS:
+                continue
+            out += _differences(a.get(key), b.get(key), f"{where}.{key}")
+        return out
+    if isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
+        return [d for i, (x, y) in enumerate(zip(a, b)) for d in _differences(x, y, f"{where}[{i}]")]
+    same = a == b or (isinstance(a, float) and isinstance(b, float) and np.isnan(a) and np.isnan(b))
+    return [] if same else [where or "."]
+
+
+def attest_equivalent(path, n_cases: int, *, block: str = "evaluation", out_dir: Path, root: Path = ROOT) -> dict:
+    """Re-run ``n_cases`` outcomes of ``block`` already computed on the frozen sources with the
+    current sources and record the current hash as equivalent when every value agrees exactly.
+    For changes that move code (a module split) and are meant to compute the same numbers: a
+    behaviour change shows as a differing value and is refused, so it needs a re-freeze and a new
+    evaluation block. The cases re-run are ones whose outcomes exist, so nothing new is learnt."""
+    path = Path(path)
+    protocol = load_protocol(path)
+    combined, each = hash_sources(root)
+    if combined in accepted_hashes(protocol):
+        raise SystemExit(f"the sources already hash to an accepted value ({combined[:12]}); nothing to attest")
+    folder = Path(out_dir) / block / protocol["sources"]["sha256"][:12]
+    files = sorted(folder.glob("seed*/*.json"))
+    if len(files) < n_cases or n_cases < 1:
+        raise SystemExit(f"{len(files)} outcome(s) of the {block} block under {folder}; give --attest-equivalent "
+                         f"between 1 and that number (run some cases of the block on the frozen sources first)")
+    # spread over the stored outcomes (they are sorted by concept, sensor set and case)
+    picked = [files[round(i * (len(files) - 1) / max(n_cases - 1, 1))] for i in range(n_cases)]
+    compared, cases = 0, []
+    for file in picked:
+        stored = json.loads(file.read_text(encoding="utf-8"))
+        outcome = CaseOutcome.from_json(stored)
+        fresh = run_case(outcome.case).to_json()
+        differences = _differences(stored, fresh)
+        print(f"{outcome.case.case_id}: {'identical' if not differences else 'DIFFERS at ' + ', '.join(differences[:5])}",
+              flush=True)
+        if differences:
+            raise SystemExit(f"{outcome.case.case_id} differs from its stored outcome ({', '.join(differences[:5])}): "
+                             "the change alters results; re-freeze (a new evaluation block) instead")
+        compared += _count_values(stored)
+        cases.append(outcome.case.case_id)
+    entry = {"sha256": combined, "files": each,
+             "attested": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+             "cases_rerun": cases, "values_identical": compared}
+    protocol["sources"].setdefault("equivalent", []).append(entry)
+    path.write_text(PROTOCOL_HEADER + yaml.safe_dump(protocol, sort_keys=False, width=110), encoding="utf-8")
+    return entry
+
+
+def _count_values(value) -> int:
+    if isinstance(value, dict):
+        return sum(_count_values(v) for k, v in value.items() if k not in RUN_KEYS)
+    if isinstance(value, list):
+        return sum(_count_values(v) for v in value)
+    return 1
 
 
 def run_block(protocol: dict, block: str, out_dir: Path, jobs: int = 1, chunk: str | None = None,
@@ -246,6 +325,8 @@ def run_block(protocol: dict, block: str, out_dir: Path, jobs: int = 1, chunk: s
     settings = protocol["selfcheck"]
     seeds = protocol["blocks"][block]["seeds"]
     current = hash_sources(root)[0]
+    if current in accepted_hashes(protocol):
+        current = protocol["sources"]["sha256"]      # an attested refactor continues the frozen outcomes
     outcomes, wall, parts, used = [], 0.0, {}, {}
     for seed in seeds:
         part = self_check(seed=int(seed), concepts=settings["concepts"], sensors=settings["sensors"],
@@ -321,9 +402,17 @@ def main() -> None:
                                  "job); the block's result comes from a run without --chunk, which reads them back")
         parser.add_argument("--results", default=str(ROOT / "results" / "gap_protocol"), metavar="DIR",
                             help="per-case outcomes and block results (default results/gap_protocol)")
+        parser.add_argument("--attest-equivalent", type=int, metavar="N",
+                            help="re-run N stored evaluation outcomes on the current sources; if every value is "
+                                 "identical, record the current sources' hash as equivalent to the frozen one")
         args = parser.parse_args()
+        if args.attest_equivalent is not None:
+            entry = attest_equivalent(args.protocol, args.attest_equivalent, out_dir=Path(args.results))
+            print(f"attested {entry['sha256'][:12]} equivalent to the frozen sources: {len(entry['cases_rerun'])} "
+                  f"case(s) re-run, {entry['values_identical']} values identical")
+            return
         if args.freeze == bool(args.block):
-            parser.error("give either --freeze or --block")
+            parser.error("give either --freeze, --block or --attest-equivalent")
         if args.freeze:
             p = freeze(args.protocol, new_evaluation=args.new_evaluation)
             print(f"froze {args.protocol}: sources {p['sources']['sha256'][:12]}..., development seeds "

@@ -272,3 +272,41 @@ def test_protocol_blocks_run_resume_and_print_side_by_side(tmp_path, monkeypatch
     text = capsys.readouterr().out
     assert "[[Blocks]] (seeds development: 11; evaluation: 5201)" in text
     assert json.loads((out / "evaluation.json").read_text())["settings"]["seeds"] == [5201]
+
+
+def test_a_refactor_is_attested_only_when_stored_outcomes_rerun_identically(tmp_path, monkeypatch):
+    bench = _bench()
+    root = tmp_path / "repo"
+    for rel in bench.SOURCE_FILES + bench.source_globs(ROOT):
+        target = root / rel
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(ROOT / rel, target)
+    protocol = tmp_path / "protocol.yaml"
+    frozen = bench.freeze(protocol, root=root, development=[11], evaluation=[5201])
+    frozen["selfcheck"].update(concepts=["htls"], sensors=["realistic"], kinds=["none"], none_per_set=2)
+    protocol.write_text(bench.yaml.safe_dump(frozen), encoding="utf-8")
+    monkeypatch.setattr(selfcheck, "run_case", lambda case, settings=None: _fake_run_case(case))
+    out = tmp_path / "results"
+    bench.protocol_main(protocol, "evaluation", root=root, out_dir=out)
+    with open(root / "ema_uq" / "gap" / "attribute.py", "a", encoding="utf-8") as fh:
+        fh.write("\n# moved code, same numbers\n")
+    assert bench.check_sources(bench.load_protocol(protocol), root=root) is not None
+
+    def shifted(case, settings=None):
+        outcome = _fake_run_case(case)
+        outcome.gap_before = outcome.gap_before * (1 + 1e-12) + 1e-15      # one value, barely off
+        return outcome
+
+    monkeypatch.setattr(bench, "run_case", shifted)
+    with pytest.raises(SystemExit, match="alters results"):
+        bench.attest_equivalent(protocol, 2, out_dir=out, root=root)
+    assert bench.check_sources(bench.load_protocol(protocol), root=root) is not None   # nothing recorded
+
+    monkeypatch.setattr(bench, "run_case", lambda case, settings=None: _fake_run_case(case))
+    entry = bench.attest_equivalent(protocol, 2, out_dir=out, root=root)
+    assert len(entry["cases_rerun"]) == 2 and entry["values_identical"] > 10
+    attested = bench.load_protocol(protocol)
+    assert attested["sources"]["sha256"] == frozen["sources"]["sha256"]              # the frozen hash stays
+    assert bench.check_sources(attested, root=root) is None
+    monkeypatch.setattr(selfcheck, "run_case", lambda *a, **k: pytest.fail("diagnosed a stored case again"))
+    bench.protocol_main(protocol, "evaluation", root=root, out_dir=out)              # continues the same outcomes
