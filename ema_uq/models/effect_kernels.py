@@ -4,10 +4,11 @@
 call the hooks below at fixed points of the right-hand side (drive-train coupling, gear play
 and its torque transmission, station friction and kinematics, load forces at the nut, the
 carriages' speeds, motor torque, the extra states' rates). Each hook takes ``flags``, the bit
-set of the effects switched in (:func:`effect_flags`, bit ``FLAG[name]``): a compile-time
-constant of each compiled kernel (``simulate`` builds one kernel per concept and effect set),
-so numba removes the physics of every effect that is off and ``flags = 0`` compiles the
-nominal model's arithmetic. Where an effect's parameters sit in ``th``, its extra states in
+set of the effects switched in (:func:`effect_flags`, bit ``FLAG[name]``). The nominal
+kernels pass ``flags = 0`` as a literal: numba compiles the hooks for that value and LLVM
+drops every effect's physics, leaving the nominal model's arithmetic. The kernels with effects
+pass the set at run time: one compiled kernel serves every effect set, each effect's physics
+behind a test of its bit (``simulate.integrators``). Where an effect's parameters sit in ``th``, its extra states in
 ``x`` and its kernel constants are read from the layout table that
 :func:`~ema_uq.models.effects.augment_ema` appends to the kernel constants ``c``, at the
 offsets ``effects.LAYOUT`` computes from the effect definitions (``FX_*`` below); ``t`` is the

@@ -14,9 +14,10 @@ evaluations than "dopri5" on HT/LS and 20x on LT/HS. With ``share_steps`` a batc
 first set's step sequence (and its choice of exact intervals) so that finite differences stay
 smooth.
 
-Modules: ``dispatch`` (from a model to its right-hand side), ``integrators`` (the RK4 and
-Dormand-Prince loops, compiled per concept and effect set), ``linear`` (the exact steps of
-"hybrid"); this module checks the arguments and runs them.
+Modules: ``dispatch`` (from a model to its right-hand side and effect set), ``integrators``
+(the RK4 and Dormand-Prince loops and their batch entries), ``linear`` (the exact steps of
+"hybrid"); this package's top level checks the arguments, runs the kernels and holds the
+result types.
 """
 from __future__ import annotations
 
@@ -25,9 +26,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..models import Model, get_model
-from .dispatch import (EFFECT_KERNELS, NOMINAL_KERNELS, SimulationError, kernel_family,  # noqa: F401
-                       kernel_key)
-from .integrators import (DP_A, DP_DIVERGED, DP_E, _dp_error, _dp_stage_state, kernels)  # noqa: F401
+from .dispatch import (EFFECT_KERNELS, HTLS_EFFECTS_KERNEL, HTLS_KERNEL, LTHS_EFFECTS_KERNEL,  # noqa: F401
+                       LTHS_KERNEL, NOMINAL_KERNELS, SimulationError, kernel_family, kernel_key)
+from .integrators import (DP_A, DP_DIVERGED, DP_E, _dopri_batch, _dopri_batch_flags,  # noqa: F401
+                          _dopri_batch_shared, _dopri_batch_shared_flags, _dopri_one, _dopri_one_nominal, _dp_error,
+                          _dp_stage_state, _integrate_batch, _integrate_batch_flags)
 from .linear import (ZOH_CHECKS, _dp_stability_radius, _dp_stable_steps, _hybrid_setup,  # noqa: F401
                      _zoh_propagators, stable_steps)
 
@@ -149,20 +152,23 @@ def simulate_batch(
             out = model.postprocess(model, thetas, time, out)
         return out[0] if single else out
     model_id, flags = kernel_key(model)
-    compiled = kernels(model_id, flags)
+    nominal = kernel_family(model) == "nominal"
     x0 = np.zeros(model.n_states) if x0 is None else np.ascontiguousarray(x0, dtype=np.float64)
     out = np.empty((thetas.shape[0], time.size, model.n_outputs))
     kernel_consts = model.kernel_constants(consts)
+    # a nominal model runs the entries compiled for the nominal equations, a model with effects
+    # the entries that take its effects' bit set at run time (one compiled kernel for all sets)
+    prefix = (model_id,) if nominal else (model_id, flags)
     if method == "rk4":
-        compiled.rk4(thetas, kernel_consts, inputs, x0, h, n_sub, out)
+        kernel = _integrate_batch if nominal else _integrate_batch_flags
+        kernel(*prefix, thetas, kernel_consts, inputs, x0, h, n_sub, out)
     else:  # no linear regime is declared for the augmented models: "hybrid" is Dormand-Prince there
-        hybrid = method == "hybrid" and kernel_family(model) == "nominal"
-        args = (thetas, kernel_consts, inputs, x0, dt, tol, error_scales(model, thetas),
-                *_hybrid_setup(model, thetas, kernel_consts, dt, hybrid))
+        args = (*prefix, thetas, kernel_consts, inputs, x0, dt, tol, error_scales(model, thetas),
+                *_hybrid_setup(model, thetas, kernel_consts, dt, method == "hybrid" and nominal))
         if share_steps and thetas.shape[0] > 1:
-            _run_shared(compiled.shared, args, out, time.size)
+            _run_shared(_dopri_batch_shared if nominal else _dopri_batch_shared_flags, args, out, time.size)
         else:
-            compiled.dopri(*args, out)
+            (_dopri_batch if nominal else _dopri_batch_flags)(*args, out)
     if model.postprocess is not None:  # output-side effects (sensor delay), batched in numpy
         out = model.postprocess(model, thetas, time, out)
     return out[0] if single else out
@@ -206,11 +212,12 @@ def step_statistics(model: Model | str, theta, time, inputs, *, integrator: str 
     dt = float(time[1] - time[0])
     kernel_consts = model.kernel_constants(consts)
     props, h_stable = _hybrid_setup(model, theta[None], kernel_consts, dt, integrator == "hybrid")
-    one = kernels(*kernel_key(model)).dopri_one
     while True:
-        accepted, rejected = one(theta, kernel_consts, inputs, np.zeros(model.n_states), dt,
-                                 model.rtol if rtol is None else float(rtol), error_scales(model, theta[None])[0],
-                                 props[0], h_stable[0], out, np.empty(capacity), counts)
+        accepted, rejected = _dopri_one_nominal(model.model_id, theta, kernel_consts, inputs,
+                                                np.zeros(model.n_states), dt,
+                                                model.rtol if rtol is None else float(rtol),
+                                                error_scales(model, theta[None])[0], props[0], h_stable[0],
+                                                out, np.empty(capacity), counts)
         if accepted == DP_DIVERGED:
             raise SimulationError("the trajectory left the finite numbers (diverged); check the parameter values")
         if accepted >= 0:

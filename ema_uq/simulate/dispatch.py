@@ -5,8 +5,8 @@ needs a static branch per right-hand side, so a new concept adds its branch to e
 below and its id to NOMINAL_KERNELS / EFFECT_KERNELS; an id without a branch is refused by
 ``kernel_family`` before any kernel runs, and raises inside a kernel rather than running
 another concept's equations. A model with unmodelled effects runs its concept's right-hand
-side with the effects' bit set ``flags`` (``models.effect_kernels``): the integrators
-(``integrators.py``) are compiled per concept and effect set, the nominal model being the set 0.
+side with the effects' bit set ``flags`` (``models.effect_kernels``): the nominal entries of
+``integrators.py`` compile the set 0 in, the entries with effects take the set at run time.
 """
 from __future__ import annotations
 

@@ -1,20 +1,20 @@
-"""The integration loops, one per method, compiled per concept and effect set.
+"""The integration loops, one per method, for the nominal and the augmented state vectors.
 
 Between samples the state is advanced by ``n_sub`` classical RK4 steps (``_integrate_one``)
 or by adaptive Dormand-Prince 5(4) steps (``_dopri_one``; with propagators, exact steps over
-the linear regime: ``linear.py``), for the nominal and the augmented state vectors alike. Every
-loop takes the concept's kernel id and the effects' bit set ``flags`` as its first arguments;
-:func:`kernels` binds both as compile-time constants into the parallel batch entries (closures
-over the two integers, cached per pair), so numba compiles, for each concept and effect set
-used, a right-hand side without the physics of the effects that are off: the nominal model is
-the set 0, and an effect set costs only its own physics.
+the linear regime: ``linear.py``). Every loop takes the concept's kernel id and the effects'
+bit set ``flags`` (``models.effect_kernels.effect_flags``) and passes both down to the
+concept's one right-hand side. Each method has one parallel batch entry taking ``flags``
+(``*_flags``) and a nominal entry that calls it with ``NOMINAL``, a module constant: numba
+types a constant argument as a literal and compiles the loops and the effect hooks once for
+it, so the nominal kernel is compiled without the effects' physics (LLVM drops every branch
+of a bit that is off). The entries with effects take ``flags`` as a run-time integer: one
+compiled kernel per method serves every effect set, each effect's physics behind a test of
+its bit, so no effect set compiles a kernel of its own.
 """
 from __future__ import annotations
 
 import math
-import sys
-from types import ModuleType
-from typing import NamedTuple
 
 import numpy as np
 from numba import njit, prange
@@ -24,8 +24,12 @@ from .dispatch import _evaluate
 from .linear import _zoh_interval, _zoh_step
 
 
+#: the effects' bit set of the nominal models: passed as this constant, a compile-time literal
+NOMINAL = 0
+
+
 # --- fixed-step RK4 -------------------------------------------------------------------------
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def _integrate_one(model_id, flags, th, consts, inputs, x0, h, n_sub, out):
     """Integrate one parameter vector; writes outputs (n_samples, n_outputs) into ``out``."""
     n_x = x0.shape[0]
@@ -211,7 +215,7 @@ def _dp_workspace(x0, n_outputs):
     return x0.copy(), np.empty(n_x), np.empty((7, n_x)), np.empty(n_x), np.empty(n_outputs)
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def _dopri_one(model_id, flags, th, consts, inputs, x0, dt, rtol, scale, props, h_stable, out, steps, counts):
     """Adaptive DP5(4) run of one parameter vector; writes outputs (n_samples, n_outputs) into ``out``.
 
@@ -280,7 +284,7 @@ def _dopri_one(model_id, flags, th, consts, inputs, x0, dt, rtol, scale, props, 
     return n_accepted, n_rejected
 
 
-@njit(cache=True, inline="always", error_model="numpy")
+@njit(cache=True, error_model="numpy")
 def _dopri_replay_one(model_id, flags, th, consts, inputs, x0, scale, props, steps, counts, out):
     """The accepted steps recorded by ``_dopri_one``, given (no error control): the same
     arithmetic, so the set that chose the steps is reproduced bit for bit and any other set is
@@ -304,91 +308,79 @@ def _dopri_replay_one(model_id, flags, th, consts, inputs, x0, scale, props, ste
             _dp_accept(x, stages, xt)
 
 
-# --- the compiled entries, one set per concept and effect set --------------------------------
-class Kernels(NamedTuple):
-    """The compiled entries of one concept and effect set (see :func:`kernels`)."""
-
-    rk4: object        #: (thetas, consts, inputs, x0, h, n_sub, out), parallel over the sets
-    dopri: object      #: (thetas, consts, inputs, x0, dt, rtol, scales, props, h_stable, out), parallel
-    shared: object     #: (... as dopri ..., out, steps, counts) -> False when ``steps`` is too short
-    dopri_one: object  #: (th, consts, inputs, x0, dt, rtol, scale, props, h_stable, out, steps, counts)
+# --- the batch entries: one per method taking the effects' bit set, and its nominal entry ------
+@njit(cache=True, parallel=True, error_model="numpy")
+def _integrate_batch_flags(model_id, flags, thetas, consts, inputs, x0, h, n_sub, out):
+    """RK4 kernel entry: thetas (n_sets, n_params) -> out (n_sets, n_samples, n_outputs)."""
+    for s in prange(thetas.shape[0]):
+        _integrate_one(model_id, flags, thetas[s], consts, inputs, x0, h, n_sub, out[s])
 
 
-_KERNELS: dict[tuple[int, int], Kernels] = {}
+@njit(cache=True, parallel=True, error_model="numpy")
+def _dopri_batch_flags(model_id, flags, thetas, consts, inputs, x0, dt, rtol, scales, props, h_stable, out):
+    """Dormand-Prince kernel entry: thetas (n_sets, n_params), scales (n_sets, n_states), props
+    (n_sets, n_checks, 2, n, n), h_stable (n_sets,) -> out (n_sets, n_samples, n_outputs)."""
+    for s in prange(thetas.shape[0]):
+        _dopri_one(model_id, flags, thetas[s], consts, inputs, x0, dt, rtol, scales[s], props[s], h_stable[s],
+                   out[s], np.empty(0), np.empty(0, dtype=np.int64))
 
 
-def kernels(model_id: int, flags: int) -> Kernels:
-    """The compiled entries of concept kernel ``model_id`` with the effects of bit set ``flags``,
-    built once per process (and compiled on first call, cached on disk per pair)."""
-    key = (int(model_id), int(flags))
-    if key not in _KERNELS:
-        _KERNELS[key] = _build_kernels(*key)
-    return _KERNELS[key]
-
-
-def _build_kernels(model_id: int, flags: int) -> Kernels:
-    """Closures over the two integers: inlined into them, the loops above see both as constants,
-    and numba's branch pruning drops the other concept and every effect that is off before
-    typing. numba caches a closure per value of its free variables; the run functions reach the
-    parallel entries through a module registered under a name made of the pair (a free
-    variable holding a compiled function would not give the same cache key in every process)."""
-    MODEL_ID = model_id
-    FLAGS = flags
-    name = f"{__name__}._kernel_{model_id}_{flags}"
-    runs = sys.modules.get(name)
-    if runs is None:
-        runs = ModuleType(name, "compiled runs of one concept and effect set")
-        sys.modules[name] = runs
-
-    def rk4_one(th, consts, inputs, x0, h, n_sub, out):
-        _integrate_one(MODEL_ID, FLAGS, th, consts, inputs, x0, h, n_sub, out)
-
-    def dopri_one(th, consts, inputs, x0, dt, rtol, scale, props, h_stable, out, steps, counts):
-        return _dopri_one(MODEL_ID, FLAGS, th, consts, inputs, x0, dt, rtol, scale, props, h_stable, out, steps,
-                          counts)
-
-    def replay_one(th, consts, inputs, x0, scale, props, steps, counts, out):
-        _dopri_replay_one(MODEL_ID, FLAGS, th, consts, inputs, x0, scale, props, steps, counts, out)
-
-    rk4_one, dopri_one, replay_one = (_compiled(f, model_id, flags) for f in (rk4_one, dopri_one, replay_one))
-    runs.rk4_one, runs.dopri_one, runs.replay_one = rk4_one, dopri_one, replay_one
-    RUNS = runs
-
-    def rk4(thetas, consts, inputs, x0, h, n_sub, out):
-        """thetas (n_sets, n_params) -> out (n_sets, n_samples, n_outputs)."""
-        for s in prange(thetas.shape[0]):
-            RUNS.rk4_one(thetas[s], consts, inputs, x0, h, n_sub, out[s])
-
-    def dopri(thetas, consts, inputs, x0, dt, rtol, scales, props, h_stable, out):
-        """thetas (n_sets, n_params), scales (n_sets, n_states), props (n_sets, n_checks, 2, n, n),
-        h_stable (n_sets,) -> out (n_sets, n_samples, n_outputs)."""
-        for s in prange(thetas.shape[0]):
-            RUNS.dopri_one(thetas[s], consts, inputs, x0, dt, rtol, scales[s], props[s], h_stable[s], out[s],
-                           np.empty(0), np.empty(0, dtype=np.int64))
-
-    def shared(thetas, consts, inputs, x0, dt, rtol, scales, props, h_stable, out, steps, counts):
-        """``dopri`` where set 0 chooses the steps and every other set replays them: finite-
-        difference sensitivities free of the step-selection noise of independent adaptive runs.
-        Returns False (nothing else done) when ``steps`` is too short for set 0's sequence."""
-        n_accepted, _ = RUNS.dopri_one(thetas[0], consts, inputs, x0, dt, rtol, scales[0], props[0], h_stable[0],
-                                       out[0], steps, counts)
-        if n_accepted == DP_DIVERGED:  # no step sequence to follow: differences around it are undefined
-            for s in range(1, out.shape[0]):
-                _fill_nan(out[s], 0)
-            return True
-        if n_accepted < 0:
-            return False
-        for s in prange(1, thetas.shape[0]):
-            RUNS.replay_one(thetas[s], consts, inputs, x0, scales[s], props[s], steps, counts, out[s])
+@njit(cache=True, parallel=True, error_model="numpy")
+def _dopri_batch_shared_flags(model_id, flags, thetas, consts, inputs, x0, dt, rtol, scales, props, h_stable, out,
+                              steps, counts):
+    """``_dopri_batch_flags`` where set 0 chooses the steps and every other set replays them:
+    finite-difference sensitivities free of the step-selection noise of independent adaptive
+    runs. Returns False (nothing else done) when ``steps`` is too short for set 0's sequence."""
+    n_accepted, _ = _dopri_one(model_id, flags, thetas[0], consts, inputs, x0, dt, rtol, scales[0], props[0],
+                               h_stable[0], out[0], steps, counts)
+    if n_accepted == DP_DIVERGED:  # no step sequence to follow: differences around it are undefined
+        for s in range(1, out.shape[0]):
+            _fill_nan(out[s], 0)
         return True
+    if n_accepted < 0:
+        return False
+    for s in prange(1, thetas.shape[0]):
+        _dopri_replay_one(model_id, flags, thetas[s], consts, inputs, x0, scales[s], props[s], steps, counts,
+                          out[s])
+    return True
 
-    rk4, dopri, shared = (_compiled(f, model_id, flags, parallel=True) for f in (rk4, dopri, shared))
-    return Kernels(rk4, dopri, shared, dopri_one)
+
+# the nominal entries: the same calls with the literal NOMINAL (a nominal entry calling the one
+# taking flags would put one more layer of LLVM optimisation over the whole kernel)
+@njit(cache=True, parallel=True, error_model="numpy")
+def _integrate_batch(model_id, thetas, consts, inputs, x0, h, n_sub, out):
+    """``_integrate_batch_flags`` of a nominal model."""
+    for s in prange(thetas.shape[0]):
+        _integrate_one(model_id, NOMINAL, thetas[s], consts, inputs, x0, h, n_sub, out[s])
 
 
-def _compiled(function, model_id: int, flags: int, **options):
-    """``function``, a closure of :func:`_build_kernels`, compiled under a name of its own pair:
-    numba names compiled code (and its cache files) after the qualified name, and closures of
-    one name loaded from the cache into one process would otherwise stand for one another."""
-    function.__qualname__ = f"{function.__name__}_kernel_{model_id}_{flags}"
-    return njit(cache=True, error_model="numpy", **options)(function)
+@njit(cache=True, parallel=True, error_model="numpy")
+def _dopri_batch(model_id, thetas, consts, inputs, x0, dt, rtol, scales, props, h_stable, out):
+    """``_dopri_batch_flags`` of a nominal model."""
+    for s in prange(thetas.shape[0]):
+        _dopri_one(model_id, NOMINAL, thetas[s], consts, inputs, x0, dt, rtol, scales[s], props[s], h_stable[s],
+                   out[s], np.empty(0), np.empty(0, dtype=np.int64))
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _dopri_batch_shared(model_id, thetas, consts, inputs, x0, dt, rtol, scales, props, h_stable, out, steps, counts):
+    """``_dopri_batch_shared_flags`` of a nominal model."""
+    n_accepted, _ = _dopri_one(model_id, NOMINAL, thetas[0], consts, inputs, x0, dt, rtol, scales[0], props[0],
+                               h_stable[0], out[0], steps, counts)
+    if n_accepted == DP_DIVERGED:
+        for s in range(1, out.shape[0]):
+            _fill_nan(out[s], 0)
+        return True
+    if n_accepted < 0:
+        return False
+    for s in prange(1, thetas.shape[0]):
+        _dopri_replay_one(model_id, NOMINAL, thetas[s], consts, inputs, x0, scales[s], props[s], steps, counts,
+                          out[s])
+    return True
+
+
+@njit(cache=True, error_model="numpy")
+def _dopri_one_nominal(model_id, th, consts, inputs, x0, dt, rtol, scale, props, h_stable, out, steps, counts):
+    """``_dopri_one`` of a nominal model (step statistics)."""
+    return _dopri_one(model_id, NOMINAL, th, consts, inputs, x0, dt, rtol, scale, props, h_stable, out, steps,
+                      counts)

@@ -451,19 +451,14 @@ def test_shared_steps_grow_their_record_when_a_run_needs_more_steps(experiment, 
     time, inputs = experiment.time, experiment.input_matrix(model)
     expected = simulate_batch(model, thetas, time, inputs, integrator="dopri5", share_steps=True)
     calls = []
-    real_kernels = sim.kernels
+    kernel = sim._dopri_batch_shared
 
-    def tiny_record_kernels(model_id, flags):
-        compiled = real_kernels(model_id, flags)
+    def tiny_record(*args):
+        steps = args[-2]
+        calls.append(steps.size)
+        return kernel(*args[:-2], steps[: max(1, steps.size // 1000)] if len(calls) == 1 else steps, args[-1])
 
-        def tiny_record(*args):
-            steps = args[-2]
-            calls.append(steps.size)
-            return compiled.shared(*args[:-2], steps[: max(1, steps.size // 1000)] if len(calls) == 1 else steps,
-                                   args[-1])
-        return compiled._replace(shared=tiny_record)
-
-    monkeypatch.setattr(sim, "kernels", tiny_record_kernels)
+    monkeypatch.setattr(sim, "_dopri_batch_shared", tiny_record)
     np.testing.assert_array_equal(simulate_batch(model, thetas, time, inputs, integrator="dopri5", share_steps=True),
                                   expected)
     assert len(calls) == 2 and calls[1] > calls[0]
