@@ -4,19 +4,23 @@
 call the hooks below at fixed points of the right-hand side (drive-train coupling, gear play
 and its torque transmission, station friction and kinematics, load forces at the nut, the
 carriages' speeds, motor torque, the extra states' rates). Each hook takes ``flags``, the bit
-set of the effects switched in (:func:`effect_flags`, bit ``FLAG[name]``). The nominal
-kernels pass ``flags = 0`` as a literal: numba compiles the hooks for that value and LLVM
-drops every effect's physics, leaving the nominal model's arithmetic. The kernels with effects
-pass the set at run time: one compiled kernel serves every effect set, each effect's physics
-behind a test of its bit (``simulate.integrators``). Where an effect's parameters sit in ``th``, its extra states in
-``x`` and its kernel constants are read from the layout table that
+set of the effects switched in (:func:`effect_flags`, bit ``FLAG[name]``), and tests it as
+``flags is not None and flags & BIT``. The nominal kernels pass ``flags = None``: each hook is
+compiled once for that type, numba prunes the effect branches before it types them, and what
+is left (the nominal arithmetic) LLVM inlines into the right-hand side. The kernels with
+effects pass the set as a run-time integer: one compiled kernel serves every effect set, each
+effect's physics behind a test of its bit (``simulate.integrators``). The hooks are separate
+compiled functions, not inlined at numba IR level: inlined, numba re-translates each one at
+every call site before any branch is pruned, which multiplied the compile time. Where an
+effect's parameters sit in ``th``, its extra states in ``x`` and its kernel constants are read
+from the layout table that
 :func:`~ema_uq.models.effects.augment_ema` appends to the kernel constants ``c``, at the
 offsets ``effects.LAYOUT`` computes from the effect definitions (``FX_*`` below); ``t`` is the
 table's position in ``c`` (the concept's ``FX_TABLE``). The physics is documented in ``effects.py``.
 
 A new effect: its :class:`~ema_uq.models.effects.Effect` in ``effects.py`` (parameters, extra
 states with their error scales, kernel constants per concept) and its physics here, inside the
-hook where it enters, under ``if flags & FLAG["<effect>"]``, reading its offsets
+hook where it enters, under ``if flags is not None and flags & <BIT>``, reading its offsets
 ``FX_<EFFECT> = LAYOUT["<effect>"]`` (state: + 1) and ``LAYOUT["<effect>_<constant>"]``. An
 effect with only an output step (``Effect.postprocess``, e.g. ``sensor_delay``) has no bit: its
 models run the kernel of their other effects. Numba caches compiled kernels per source file:
@@ -196,7 +200,7 @@ def coupling(flags, x, th, c, t, omega, theta, band_ratio_a, band_ratio_b):
     spring, or backlash_compliant's beyond a dead band of ±δ band_ratio_a band_ratio_b motor
     radians): (motor speed, drive-train speed, motor angle, the coupling's terms for
     :func:`coupling_rates`). Rigid (omega, omega, theta) without one."""
-    if flags & ANY_COUPLING:
+    if flags is not None and flags & ANY_COUPLING:
         if flags & COUPLING:
             p_bc = int(c[t + FX_COUPLING])
             p_sc, x_sc = p_bc + 1, int(c[t + FX_COUPLING + 1])
@@ -230,7 +234,7 @@ def coupling_rates(flags, th_j, terms, net, load, dx):
     """The coupling's twist and twist rate derivatives into ``dx`` (nothing without one);
     ``net`` is the torque on the whole inertia ``th_j``, ``load`` the drive train's torque on
     the motor side of the coupling."""
-    if flags & ANY_COUPLING:
+    if flags is not None and flags & ANY_COUPLING:
         load_fraction, omega_n, zeta, q, q_rate, band, softness, x_sc = terms
         j_load = load_fraction * th_j
         j_motor = th_j - j_load
@@ -243,7 +247,7 @@ def gear_play(flags, x, th, c, t, k, ratio_a, ratio_b, drive, dx):
     """backlash: play k (0, 1) of the gear stage ahead of the screw(s), of half width
     δ ratio_a ratio_b drive-side radians: (load-side speed, torque transmission); its travel's
     rate into ``dx``. (drive, 1.0) without the effect."""
-    if flags & BACKLASH:
+    if flags is not None and flags & BACKLASH:
         p_bl = int(c[t + FX_BACKLASH])
         x_bl = int(c[t + FX_BACKLASH + 1]) + k
         if th[p_bl] > 0.0:
@@ -258,7 +262,7 @@ def gear_play(flags, x, th, c, t, k, ratio_a, ratio_b, drive, dx):
 @njit(cache=True, inline="always", error_model="numpy")
 def transmit(flags, e, torque):
     """A gear-stage torque through the play's transmission ``e`` of :func:`gear_play`."""
-    if flags & BACKLASH:
+    if flags is not None and flags & BACKLASH:
         return e * torque
     return torque
 
@@ -266,7 +270,7 @@ def transmit(flags, e, torque):
 @njit(cache=True, inline="always", error_model="numpy")
 def coulomb(flags, c_loss, factor):
     """A Coulomb loss with the Stribeck factor of its shaft (:func:`station_terms`)."""
-    if flags & STRIBECK:
+    if flags is not None and flags & STRIBECK:
         return c_loss * factor
     return c_loss
 
@@ -274,7 +278,7 @@ def coulomb(flags, c_loss, factor):
 @njit(cache=True, error_model="numpy")
 def stribeck_coulomb(flags, th, c, t, c_loss, speed):
     """A Coulomb loss with the Stribeck factor at ``speed`` (referred to the screw)."""
-    if flags & STRIBECK:
+    if flags is not None and flags & STRIBECK:
         p_st = int(c[t + FX_STRIBECK])
         return c_loss * _stribeck(speed, th[p_st], th[p_st + 1])
     return c_loss
@@ -300,13 +304,13 @@ def station_terms(flags, th, c, t, omega_tp1, omega_tp2, angle1, angle2, eps):
     sign2 = sign1 if omega_tp2 == omega_tp1 else smooth_sign(omega_tp2, eps)
     cos1 = 1.0
     cos2 = 1.0
-    if flags & ANY_UJOINT:
+    if flags is not None and flags & ANY_UJOINT:
         p_uj1, p_uj2 = _ujoint_positions(flags, c, t)
         cos1 = math.cos(angle1 + th[p_uj1 + 1])
         cos2 = cos1 if angle2 == angle1 and p_uj2 == p_uj1 else math.cos(angle2 + th[p_uj2 + 1])
     f1 = 1.0
     f2 = 1.0
-    if flags & STRIBECK:
+    if flags is not None and flags & STRIBECK:
         p_st = int(c[t + FX_STRIBECK])
         f1 = _stribeck(omega_tp1, th[p_st], th[p_st + 1])
         f2 = f1 if omega_tp2 == omega_tp1 else _stribeck(omega_tp2, th[p_st], th[p_st + 1])
@@ -327,18 +331,18 @@ def station(flags, th, c, t, k, omega_tp, sign_tp, cos_angle, f_tp, f_er, b_ts, 
     """
     g_u = 1.0
     omega_u = omega_tp
-    if flags & ANY_UJOINT:
+    if flags is not None and flags & ANY_UJOINT:
         p_uj1, p_uj2 = _ujoint_positions(flags, c, t)
         g_u = _ujoint_factor(cos_angle, th[p_uj1 if k == 1 else p_uj2], inv_cos_beta)
         omega_u = g_u * omega_tp
-    if flags & LOAD_FRICTION:
+    if flags is not None and flags & LOAD_FRICTION:
         c_ts = c_ts + th[int(c[t + FX_LOAD_FRICTION])] * r * abs(f_er)
-    if flags & STRIBECK:
+    if flags is not None and flags & STRIBECK:
         c_ts = c_ts * f_tp
         c_u = c_u * f_tp
     m_er = -r_scg * f_er
     m_tser = b_ts * omega_u + c_ts * sign_tp + m_er
-    if flags & ANY_UJOINT:
+    if flags is not None and flags & ANY_UJOINT:
         m_uer = m_tser * g_u * inv_cos_beta + b_u * omega_u + c_u * sign_tp
     else:
         m_uer = m_tser * inv_cos_beta + b_u * omega_u + c_u * sign_tp
@@ -349,7 +353,7 @@ def station(flags, th, c, t, k, omega_tp, sign_tp, cos_angle, f_tp, f_er, b_ts, 
 def nut_contact(flags, x, th, c, t, force1, force2):
     """backlash_output: the load forces that reach the screws (only at a flank of the nut
     play) and the plays' slopes; (force1, force2, 0, 0) unchanged without the effect."""
-    if flags & NUT_PLAY:
+    if flags is not None and flags & NUT_PLAY:
         p_np = int(c[t + FX_NUT_PLAY])
         x_np = int(c[t + FX_NUT_PLAY + 1])
         if th[p_np] > 0.0:
@@ -364,7 +368,7 @@ def nut_contact(flags, x, th, c, t, force1, force2):
 def carriage_speeds(flags, x, th, c, t, omega_u1, omega_u2, slope1, slope2, dx):
     """backlash_output: the carriages' speeds in screw radians (the screw's, less its travel
     inside the play), writing the plays' db/dt into ``dx``; the screws' without the effect."""
-    if flags & NUT_PLAY:
+    if flags is not None and flags & NUT_PLAY:
         p_np = int(c[t + FX_NUT_PLAY])
         x_np = int(c[t + FX_NUT_PLAY + 1])
         if th[p_np] > 0.0:
@@ -383,7 +387,7 @@ def carriage_speeds(flags, x, th, c, t, omega_u1, omega_u2, slope1, slope2, dx):
 def motor_torque(flags, th, c, t, theta_m, k_n, torque):
     """The motor torque ``torque`` with the ripple torques (torque_ripple: k_n A sin(n_p θ + φ);
     torque_ripple_harmonics: k_n A (sin(n θ + φ1) + h2 sin(2 n θ + φ2) + h3 sin(3 n θ + φ3)))."""
-    if flags & ANY_RIPPLE:
+    if flags is not None and flags & ANY_RIPPLE:
         m_ripple = 0.0
         if flags & RIPPLE:
             p_tr = int(c[t + FX_RIPPLE])

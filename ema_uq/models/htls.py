@@ -95,11 +95,11 @@ FX_TABLE = D_INV_COS_B2 + 1
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def evaluate(x, u, th, c, dx, y, outputs=True, flags=0):
+def evaluate(x, u, th, c, dx, y, outputs=True, flags=None):
     """State derivative ``dx`` and all outputs ``y``; ``c`` is ``MODEL.kernel_constants(...)``;
     x = [Omega, y1, y2, theta] followed by the extra states of the effects in ``flags``
-    (``effect_kernels.effect_flags``, a compile-time constant; 0: the nominal model of
-    MODEL_SPEC.md), which enter through the hooks of ``effect_kernels``."""
+    (``effect_kernels.effect_flags``; None: the nominal model of MODEL_SPEC.md, its effect
+    branches pruned at compile time), which enter through the hooks of ``effect_kernels``."""
     t = FX_TABLE
     eps = c[C_OMEGA_EPS]
     i_tp1 = c[C_I_TP1]

@@ -5,12 +5,11 @@ or by adaptive Dormand-Prince 5(4) steps (``_dopri_one``; with propagators, exac
 the linear regime: ``linear.py``). Every loop takes the concept's kernel id and the effects'
 bit set ``flags`` (``models.effect_kernels.effect_flags``) and passes both down to the
 concept's one right-hand side. Each method has one parallel batch entry taking ``flags``
-(``*_flags``) and a nominal entry that calls it with ``NOMINAL``, a module constant: numba
-types a constant argument as a literal and compiles the loops and the effect hooks once for
-it, so the nominal kernel is compiled without the effects' physics (LLVM drops every branch
-of a bit that is off). The entries with effects take ``flags`` as a run-time integer: one
-compiled kernel per method serves every effect set, each effect's physics behind a test of
-its bit, so no effect set compiles a kernel of its own.
+(``*_flags``) and a nominal entry that passes ``NOMINAL`` (None): numba compiles the loops
+and the effect hooks once for that type and prunes the effects' branches before typing them,
+so the nominal kernel holds the nominal arithmetic only. The entries with effects take
+``flags`` as a run-time integer: one compiled kernel per method serves every effect set, each
+effect's physics behind a test of its bit, so no effect set compiles a kernel of its own.
 """
 from __future__ import annotations
 
@@ -24,44 +23,47 @@ from .dispatch import _evaluate
 from .linear import _zoh_interval, _zoh_step
 
 
-#: the effects' bit set of the nominal models: passed as this constant, a compile-time literal
-NOMINAL = 0
+#: the effects' bit set of the nominal models: ``None``, a type of its own, so that numba prunes
+#: every ``flags is not None and ...`` branch of the right-hand side before it types the code
+NOMINAL = None
 
 
 # --- fixed-step RK4 -------------------------------------------------------------------------
 @njit(cache=True, error_model="numpy")
 def _integrate_one(model_id, flags, th, consts, inputs, x0, h, n_sub, out):
-    """Integrate one parameter vector; writes outputs (n_samples, n_outputs) into ``out``."""
+    """Integrate one parameter vector; writes outputs (n_samples, n_outputs) into ``out``.
+
+    One call site of the (inlined) right-hand side: inlined at each of the four stages, the
+    equations with effects took minutes to compile."""
     n_x = x0.shape[0]
-    n_y = out.shape[1]
     x = x0.copy()
     xt = np.empty(n_x)
-    k1 = np.empty(n_x)
-    k2 = np.empty(n_x)
-    k3 = np.empty(n_x)
-    k4 = np.empty(n_x)
-    scratch = np.empty(n_y)
+    stages = np.empty((4, n_x))
+    scratch = np.empty(out.shape[1])
     n_samples = inputs.shape[0]
     for k in range(n_samples):
         u = inputs[k]
-        # outputs at t_k and the first RK4 stage of the next interval share one evaluation
-        _evaluate(model_id, flags, x, u, th, consts, k1, out[k])
-        if k == n_samples - 1:
-            break
+        last = k == n_samples - 1
         for sub in range(n_sub):
-            if sub > 0:
-                _evaluate(model_id, flags, x, u, th, consts, k1, scratch, False)
+            for stage in range(4):
+                if stage == 0:
+                    for i in range(n_x):
+                        xt[i] = x[i]
+                elif stage < 3:
+                    for i in range(n_x):
+                        xt[i] = x[i] + 0.5 * h * stages[stage - 1, i]
+                else:
+                    for i in range(n_x):
+                        xt[i] = x[i] + h * stages[2, i]
+                # outputs at t_k and the first RK4 stage of the next interval share one evaluation
+                sample = sub == 0 and stage == 0
+                _evaluate(model_id, flags, xt, u, th, consts, stages[stage], out[k] if sample else scratch, sample)
+                if last:
+                    break
+            if last:
+                break
             for i in range(n_x):
-                xt[i] = x[i] + 0.5 * h * k1[i]
-            _evaluate(model_id, flags, xt, u, th, consts, k2, scratch, False)
-            for i in range(n_x):
-                xt[i] = x[i] + 0.5 * h * k2[i]
-            _evaluate(model_id, flags, xt, u, th, consts, k3, scratch, False)
-            for i in range(n_x):
-                xt[i] = x[i] + h * k3[i]
-            _evaluate(model_id, flags, xt, u, th, consts, k4, scratch, False)
-            for i in range(n_x):
-                x[i] += h / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
+                x[i] += h / 6.0 * (stages[0, i] + 2.0 * stages[1, i] + 2.0 * stages[2, i] + stages[3, i])
 
 
 # --- adaptive Dormand-Prince 5(4) -----------------------------------------------------------
@@ -174,7 +176,7 @@ def _freeze(flags, dx, scale):
     """Zero the derivatives of the states with ``scale < 0`` (an effect at its ``off`` value
     whose states feed nothing: the stiff shaft mode of ``shaft_compliance`` at period 0 would
     otherwise be integrated, unresolved, for nothing); nothing without effect states."""
-    if flags & ek.STATEFUL:
+    if flags is not None and flags & ek.STATEFUL:
         for i in range(dx.shape[0]):
             if scale[i] < 0.0:
                 dx[i] = 0.0
