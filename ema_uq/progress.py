@@ -96,8 +96,8 @@ def first_compile_notice(modules: tuple[str, ...] = ("simulate.integrators",), s
     """Say, in one line, that the simulator's kernels are compiled now (about a minute, once per
     installation and source change) when numba has no cached copy of them; True when said.
     ``modules``: the package's modules (dotted, below ``ema_uq``) whose kernels the verb runs.
-    The model and effect equations are inlined into these kernels, so their cache is the one
-    that counts; a new effect combination still compiles a specialisation of its own later."""
+    The model and effect equations are compiled into these kernels, so their cache is the one
+    that counts; one kernel per method serves every effect combination."""
     import importlib
 
     # the package's namespace holds a function named simulate, so the modules are imported by path

@@ -66,23 +66,6 @@ def brake_torque(engaged, speed, m_bmax, k_b, omega_half, eps):
     return engaged * magnitude * smooth_sign(speed, eps)
 
 
-@njit(cache=True, inline="always", error_model="numpy")
-def station_torques(omega_u, sign_u, f_er, b_ts, c_ts, b_u, c_u, r_sin_cos_gamma, inv_cos_beta):
-    """Ball screw and U-joint of one station (eqs. 10-15): returns M_ER, M_TSER, M_UER.
-
-    ``sign_u`` is the smoothed sign of ``omega_u``, passed in because with g_U = 1 it equals
-    the bevel gear's and tanh is the most expensive operation of a step.
-    ``r_sin_cos_gamma`` = r sinγ cosγ and ``inv_cos_beta`` = 1/cosβ come precomputed
-    (see ``derived_constants``) because trigonometry of constants dominated the step cost.
-    """
-    m_er = -r_sin_cos_gamma * f_er
-    m_tser = b_ts * omega_u + c_ts * sign_u + m_er
-    m_uer = m_tser * inv_cos_beta + b_u * omega_u + c_u * sign_u
-    return m_er, m_tser, m_uer
-
-
-
-
 def screw_constants(r: float, gamma: float, beta1: float, beta2: float) -> list[float]:
     """[r sinγ cosγ, r tanγ, 1/cosβ1, 1/cosβ2]: the trigonometric constants of both stations."""
     return [r * math.sin(gamma) * math.cos(gamma), r * math.tan(gamma), 1.0 / math.cos(beta1), 1.0 / math.cos(beta2)]

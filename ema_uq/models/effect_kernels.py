@@ -1,43 +1,84 @@
-"""Compiled right-hand sides of the HT/LS and LT/HS models with unmodelled effects.
+"""The unmodelled effects' physics inside the HT/LS and LT/HS right-hand sides.
 
-``evaluate_htls_effects`` / ``evaluate_lths_effects`` have the signature of the nominal
-``evaluate(x, u, th, c, dx, y)``. Which effects are active, where their parameters sit in
-``th`` and their extra states in ``x``, and the effects' kernel constants are read from the
-layout table that :func:`~ema_uq.models.effects.augment_ema` appends to the kernel constants
-``c``, at the offsets ``effects.LAYOUT`` computes from the effect definitions (``FX_*`` below,
-module constants that numba compiles in). The physics is documented in ``effects.py``.
+``htls.evaluate`` and ``lths.evaluate`` are the one source of each concept's equations; they
+call the hooks below at fixed points of the right-hand side (drive-train coupling, gear play
+and its torque transmission, station friction and kinematics, load forces at the nut, the
+carriages' speeds, motor torque, the extra states' rates). Each hook takes ``flags``, the bit
+set of the effects switched in (:func:`effect_flags`, bit ``FLAG[name]``), and tests it as
+``flags is not None and flags & BIT``. The nominal kernels pass ``flags = None``: each hook is
+compiled once for that type, numba prunes the effect branches before it types them, and what
+is left (the nominal arithmetic) LLVM inlines into the right-hand side. The kernels with
+effects pass the set as a run-time integer: one compiled kernel serves every effect set, each
+effect's physics behind a test of its bit (``simulate.integrators``). The hooks are separate
+compiled functions, not inlined at numba IR level: inlined, numba re-translates each one at
+every call site before any branch is pruned, which multiplied the compile time. They are
+compiled without the numba runtime (:data:`hook`): they allocate nothing and only borrow the
+arrays they are given, and with the runtime every call paid atomic reference counts on those
+arrays, which left a right-hand side with effects at twice and more the cost of the former
+monolithic effect kernels (HT/LS, one evaluation: 325 ns against 188 ns; without it 74 ns).
+Where an effect's parameters sit in ``th``, its extra states in ``x`` and its kernel constants
+are read from the layout table that :func:`~ema_uq.models.effects.augment_ema` appends to the
+kernel constants ``c``, at the offsets ``effects.LAYOUT`` computes from the effect definitions
+(``FX_*`` below); ``t`` is the table's position in ``c`` (the concept's ``FX_TABLE``). The physics
+is documented in ``effects.py``.
 
-A new effect: its :class:`~ema_uq.models.effects.Effect` in ``effects.py`` (parameters,
-extra states with their error scales, kernel constants per concept) and its physics here,
-reading its offsets ``FX_<EFFECT> = LAYOUT["<effect>"]`` (state: + 1) and ``LAYOUT["<effect>_<constant>"]``.
-Numba caches compiled kernels per source file: after changing an effect's parameters or
-constants in ``effects.py`` alone, delete the caches (``*.nbi``, ``*.nbc``) so the kernels
-compile the new offsets.
+A new effect: its :class:`~ema_uq.models.effects.Effect` in ``effects.py`` (parameters, extra
+states with their error scales, kernel constants per concept) and its physics here, inside the
+hook where it enters, under ``if flags is not None and flags & <BIT>``, reading its offsets
+``FX_<EFFECT> = LAYOUT["<effect>"]`` (state: + 1) and ``LAYOUT["<effect>_<constant>"]``. An
+effect with only an output step (``Effect.postprocess``, e.g. ``sensor_delay``) has no bit: its
+models run the kernel of their other effects. Numba caches compiled kernels per source file:
+after changing an effect's parameters or constants in ``effects.py`` alone, delete the caches
+(``*.nbi``, ``*.nbc``) so the kernels compile the new offsets.
 
 Every effect enters so that its ``off`` values give back the nominal arithmetic exactly
-(factors of exactly 1.0, additions of exactly 0.0, unchanged summation order), which is
-what makes an augmented model at ``off`` reproduce the nominal outputs bit for bit. The
-nominal ``evaluate`` functions are not touched.
+(factors of exactly 1.0, additions of exactly 0.0, unchanged summation order), which is what
+makes an augmented model at ``off`` reproduce the nominal outputs bit for bit.
 """
 from __future__ import annotations
 
 import math
+from typing import Sequence
 
 from numba import njit
 
-from . import htls as H
-from . import lths as L
-from .components import brake_torque
-from .effects import LAYOUT
+from .effects import CATALOGUE, EFFECT_ORDER, LAYOUT
+
+#: kernel bit of each effect with physics in the right-hand side (output-only effects have none)
+FLAG: dict[str, int] = {name: 1 << i for i, name in enumerate(EFFECT_ORDER) if CATALOGUE[name].postprocess is None}
+BACKLASH = FLAG["backlash"]
+STRIBECK = FLAG["stribeck"]
+COMPLIANCE = FLAG["shaft_compliance"]
+UJOINT = FLAG["ujoint_kinematics"]
+UJOINT_STATIONS = FLAG["ujoint_stations"]
+LOAD_FRICTION = FLAG["load_dependent_friction"]
+RIPPLE = FLAG["torque_ripple"]
+HARMONICS = FLAG["torque_ripple_harmonics"]
+COUPLING = FLAG["backlash_compliant"]
+NUT_PLAY = FLAG["backlash_output"]
+#: effects of one kind: a U-joint factor, a compliant coupling, a ripple torque
+ANY_UJOINT = UJOINT | UJOINT_STATIONS
+ANY_COUPLING = COMPLIANCE | COUPLING
+ANY_RIPPLE = RIPPLE | HARMONICS
+#: effects with extra states (frozen by the adaptive integrator at their magnitude's zero)
+STATEFUL = sum(FLAG[n] for n in FLAG if any(CATALOGUE[n].extra_states.values()))
+
+
+def effect_flags(names: Sequence[str]) -> int:
+    """The kernel's bit set of the named effects (0: the nominal right-hand side)."""
+    return int(sum(FLAG.get(name, 0) for name in names))
+
+
+#: decorator of the hooks: compiled on their own (see above), without the numba runtime's
+#: reference counting (``_nrt=False``, an option of numba's CPU target); a hook that allocated
+#: an array would fail to compile, which keeps them to scalars and borrowed arrays
+hook = njit(cache=True, error_model="numpy", _nrt=False)
 
 TWO_PI = 2.0 * math.pi
 #: tanh(z) rounds to exactly ±1.0 in double precision for |z| > 19.06: skipping the call there
 #: changes no bit and saves most tanh calls while shafts turn
 TANH_SATURATED = 19.1
 
-#: kernel positions of the layout table (after the concept's derived constants)
-HTLS_FX = H.D_INV_COS_B2 + 1
-LTHS_FX = L.D_INV_COS_B2 + 1
 # offsets inside the table (effects.LAYOUT): the effect's first parameter position in th (its
 # first extra state in x one further, -1 when the effect is off), then its kernel constants
 FX_BACKLASH = LAYOUT["backlash"]
@@ -152,20 +193,6 @@ def _ujoint_factor(cos_angle, scale, inv_cos_beta):
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _ujoint_positions(c, t):
-    """Positions in th of each station's U-joint ripple scale (its yoke phase follows it):
-    ujoint_kinematics' one pair for both stations, ujoint_stations' own pair per station, or
-    (-1, -1) without a U-joint effect."""
-    p_uj = int(c[t + FX_UJOINT])
-    if p_uj >= 0:
-        return p_uj, p_uj
-    p_us = int(c[t + FX_UJOINT_STATIONS])
-    if p_us >= 0:
-        return p_us, p_us + 2
-    return -1, -1
-
-
-@njit(cache=True, inline="always", error_model="numpy")
 def _stribeck(speed, ratio, v_s):
     """Coulomb multiplier 1 + ρ exp(-(v/v_s)²)."""
     z = speed / v_s
@@ -175,360 +202,209 @@ def _stribeck(speed, ratio, v_s):
     return 1.0 + ratio * math.exp(-zz)
 
 
+# --- hooks: called by the concepts' evaluate at fixed points of the right-hand side ---------
+@hook
+def coupling(flags, x, th, c, t, omega, theta, band_ratio_a, band_ratio_b):
+    """A compliant coupling between motor (+ magnetic gear) and drive train (shaft_compliance's
+    spring, or backlash_compliant's beyond a dead band of ±δ band_ratio_a band_ratio_b motor
+    radians): (motor speed, drive-train speed, motor angle, the coupling's terms for
+    :func:`coupling_rates`). Rigid (omega, omega, theta) without one."""
+    if flags is not None and flags & ANY_COUPLING:
+        if flags & COUPLING:
+            p_bc = int(c[t + FX_COUPLING])
+            p_sc, x_sc = p_bc + 1, int(c[t + FX_COUPLING + 1])
+            load_fraction, omega_max = c[t + FX_COUPLING_LOAD_FRACTION], c[t + FX_COUPLING_OMEGA_MAX]
+            softness = c[t + FX_COUPLING_SOFTNESS]
+            band = th[p_bc] * band_ratio_a * band_ratio_b
+        else:
+            p_sc = int(c[t + FX_COMPLIANCE])
+            x_sc = int(c[t + FX_COMPLIANCE + 1])
+            load_fraction, omega_max = th[p_sc + 2], c[t + FX_MODE_OMEGA_MAX]
+            softness = 0.0
+            band = -1.0
+        period = th[p_sc]
+        t_floor = TWO_PI / omega_max
+        if period >= t_floor:
+            part = 1.0
+            omega_n = TWO_PI / period
+        else:  # faster than the integrator resolves: keep the mode there, fade its participation
+            part = period / t_floor
+            omega_n = omega_max
+        zeta, q, q_rate = th[p_sc + 1], x[x_sc], x[x_sc + 1]
+        omega_m = omega + part * load_fraction * q_rate
+        omega_s = omega - part * (1.0 - load_fraction) * q_rate
+        theta_m = theta + part * load_fraction * q
+        return omega_m, omega_s, theta_m, (load_fraction, omega_n, zeta, q, q_rate, band, softness, x_sc)
+    return omega, omega, theta, (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1)
+
+
+@hook
+def coupling_rates(flags, th_j, terms, net, load, dx):
+    """The coupling's twist and twist rate derivatives into ``dx`` (nothing without one);
+    ``net`` is the torque on the whole inertia ``th_j``, ``load`` the drive train's torque on
+    the motor side of the coupling."""
+    if flags is not None and flags & ANY_COUPLING:
+        load_fraction, omega_n, zeta, q, q_rate, band, softness, x_sc = terms
+        j_load = load_fraction * th_j
+        j_motor = th_j - j_load
+        dx[x_sc] = q_rate
+        dx[x_sc + 1] = _coupling_rate(net, load, j_motor, j_load, omega_n, zeta, q, q_rate, band, softness)
+
+
+@hook
+def gear_play(flags, x, th, c, t, k, ratio_a, ratio_b, drive, dx):
+    """backlash: play k (0, 1) of the gear stage ahead of the screw(s), of half width
+    δ ratio_a ratio_b drive-side radians: (load-side speed, torque transmission); its travel's
+    rate into ``dx``. (drive, 1.0) without the effect."""
+    if flags is not None and flags & BACKLASH:
+        p_bl = int(c[t + FX_BACKLASH])
+        x_bl = int(c[t + FX_BACKLASH + 1]) + k
+        if th[p_bl] > 0.0:
+            omega_l, e, b_rate = _play(x[x_bl], th[p_bl] * ratio_a * ratio_b, c[t + FX_BACKLASH_SOFTNESS],
+                                       c[t + FX_BACKLASH_RELAXATION], drive)
+            dx[x_bl] = b_rate
+            return omega_l, e
+        dx[x_bl] = 0.0
+    return drive, 1.0
+
+
 @njit(cache=True, inline="always", error_model="numpy")
-def _station(omega_tp, sign_tp, cos_angle, f_tp, f_er, b_ts, c_ts, b_u, c_u, r_scg, inv_cos_beta,
-             p_uj, p_st, p_ld, r, th):
-    """One station with the station effects: returns Ω_U, M_ER, M_TSER, M_UER.
-
-    ``sign_tp`` = sgn_ε(Ω_TP), ``cos_angle`` = cos(θ_TP + φ_U) and ``f_tp`` (the Stribeck
-    factor at Ω_TP) come from the caller, which shares them between stations whose shafts
-    turn alike (transcendentals dominate the cost of a step). The U-joint and screw terms use
-    the sign and Stribeck factor of Ω_TP: g_U > 0 never changes the direction, and the
-    ripple (|g_U - 1| < 3 % at a = 6) hardly moves the Stribeck factor.
-    """
-    g_u = 1.0
-    omega_u = omega_tp
-    if p_uj >= 0:
-        g_u = _ujoint_factor(cos_angle, th[p_uj], inv_cos_beta)
-        omega_u = g_u * omega_tp
-    if p_ld >= 0:
-        c_ts = c_ts + th[p_ld] * r * abs(f_er)
-    if p_st >= 0:
-        c_ts = c_ts * f_tp
-        c_u = c_u * f_tp
-    m_er = -r_scg * f_er
-    m_tser = b_ts * omega_u + c_ts * sign_tp + m_er
-    m_uer = m_tser * g_u * inv_cos_beta + b_u * omega_u + c_u * sign_tp
-    return omega_u, m_er, m_tser, m_uer
+def transmit(flags, e, torque):
+    """A gear-stage torque through the play's transmission ``e`` of :func:`gear_play`."""
+    if flags is not None and flags & BACKLASH:
+        return e * torque
+    return torque
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _shared_terms(omega_tp1, omega_tp2, angle1, angle2, eps, p_uj1, p_uj2, p_st, th):
-    """sgn_ε, cos(θ_TP + φ_U) and Stribeck factor of both stations, each computed once when
-    the two shafts turn alike (identical arguments give identical results)."""
+def coulomb(flags, c_loss, factor):
+    """A Coulomb loss with the Stribeck factor of its shaft (:func:`station_terms`)."""
+    if flags is not None and flags & STRIBECK:
+        return c_loss * factor
+    return c_loss
+
+
+@hook
+def stribeck_coulomb(flags, th, c, t, c_loss, speed):
+    """A Coulomb loss with the Stribeck factor at ``speed`` (referred to the screw)."""
+    if flags is not None and flags & STRIBECK:
+        p_st = int(c[t + FX_STRIBECK])
+        return c_loss * _stribeck(speed, th[p_st], th[p_st + 1])
+    return c_loss
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _ujoint_positions(flags, c, t):
+    """Positions in th of each station's U-joint ripple scale (its yoke phase follows it):
+    ujoint_kinematics' one pair for both stations, or ujoint_stations' own pair per station."""
+    if flags & UJOINT:
+        p_uj = int(c[t + FX_UJOINT])
+        return p_uj, p_uj
+    p_us = int(c[t + FX_UJOINT_STATIONS])
+    return p_us, p_us + 2
+
+
+@hook
+def station_terms(flags, th, c, t, omega_tp1, omega_tp2, angle1, angle2, eps):
+    """sgn_ε, cos(θ_TP + φ_U) and Stribeck factor of both stations' shafts, each computed once
+    when the two shafts turn alike (identical arguments give identical results); the angles
+    θ_TP are read only by a U-joint effect. Cosines and factors are 1.0 without the effects."""
     sign1 = smooth_sign(omega_tp1, eps)
     sign2 = sign1 if omega_tp2 == omega_tp1 else smooth_sign(omega_tp2, eps)
     cos1 = 1.0
     cos2 = 1.0
-    if p_uj1 >= 0:
+    if flags is not None and flags & ANY_UJOINT:
+        p_uj1, p_uj2 = _ujoint_positions(flags, c, t)
         cos1 = math.cos(angle1 + th[p_uj1 + 1])
         cos2 = cos1 if angle2 == angle1 and p_uj2 == p_uj1 else math.cos(angle2 + th[p_uj2 + 1])
     f1 = 1.0
     f2 = 1.0
-    if p_st >= 0:
+    if flags is not None and flags & STRIBECK:
+        p_st = int(c[t + FX_STRIBECK])
         f1 = _stribeck(omega_tp1, th[p_st], th[p_st + 1])
         f2 = f1 if omega_tp2 == omega_tp1 else _stribeck(omega_tp2, th[p_st], th[p_st + 1])
     return sign1, sign2, cos1, cos2, f1, f2
 
 
-@njit(cache=True, inline="always", error_model="numpy")
-def _compliance(x, th, p_sc, x_sc, load_fraction, omega_max):
-    """Modal two-inertia shaft: (participation, ω_n, ζ, twist q, twist rate)."""
-    period = th[p_sc]
-    t_floor = TWO_PI / omega_max
-    if period >= t_floor:
-        part = 1.0
-        omega_n = TWO_PI / period
-    else:  # faster than the integrator resolves: keep the mode there, fade its participation
-        part = period / t_floor
-        omega_n = omega_max
-    return part, omega_n, th[p_sc + 1], x[x_sc], x[x_sc + 1]
+@hook
+def station(flags, th, c, t, k, omega_tp, sign_tp, cos_angle, f_tp, f_er, b_ts, c_ts, b_u, c_u, r_scg,
+            inv_cos_beta, r):
+    """Ball screw and U-joint of station k (1, 2), eqs. 10-15, with the station effects:
+    returns Ω_U, M_ER, M_TSER, M_UER.
+
+    ``sign_tp``, ``cos_angle`` and ``f_tp`` come from :func:`station_terms`; ``r`` is the screw
+    radius (load-dependent friction). The U-joint and
+    screw terms use the sign and Stribeck factor of Ω_TP: g_U > 0 never changes the direction,
+    and the ripple (|g_U - 1| < 3 % at a = 6) hardly moves the Stribeck factor. Without
+    effects, g_U = 1 (eq. 26) and Ω_U = Ω_TP.
+    """
+    g_u = 1.0
+    omega_u = omega_tp
+    if flags is not None and flags & ANY_UJOINT:
+        p_uj1, p_uj2 = _ujoint_positions(flags, c, t)
+        g_u = _ujoint_factor(cos_angle, th[p_uj1 if k == 1 else p_uj2], inv_cos_beta)
+        omega_u = g_u * omega_tp
+    if flags is not None and flags & LOAD_FRICTION:
+        c_ts = c_ts + th[int(c[t + FX_LOAD_FRICTION])] * r * abs(f_er)
+    if flags is not None and flags & STRIBECK:
+        c_ts = c_ts * f_tp
+        c_u = c_u * f_tp
+    m_er = -r_scg * f_er
+    m_tser = b_ts * omega_u + c_ts * sign_tp + m_er
+    if flags is not None and flags & ANY_UJOINT:
+        m_uer = m_tser * g_u * inv_cos_beta + b_u * omega_u + c_u * sign_tp
+    else:
+        m_uer = m_tser * inv_cos_beta + b_u * omega_u + c_u * sign_tp
+    return omega_u, m_er, m_tser, m_uer
 
 
-@njit(cache=True, inline="always", error_model="numpy")
-def _harmonic_ripple(th, c, t, theta_m, k_n):
-    """torque_ripple_harmonics: k_n A (sin(n θ + φ1) + h2 sin(2 n θ + φ2) + h3 sin(3 n θ + φ3))."""
-    p = int(c[t + FX_HARMONICS])
-    angle = c[t + FX_HARMONICS_PERIODS] * theta_m
-    return k_n * th[p] * (math.sin(angle + th[p + 1]) + th[p + 2] * math.sin(2.0 * angle + th[p + 3])
-                          + th[p + 4] * math.sin(3.0 * angle + th[p + 5]))
-
-
-@njit(cache=True, inline="always", error_model="numpy")
-def _nut_contact(x, th, c, t, p_np, x_np, force1, force2):
+@hook
+def nut_contact(flags, x, th, c, t, force1, force2):
     """backlash_output: the load forces that reach the screws (only at a flank of the nut
-    play) and the plays' slopes; (force1, force2, 0, 0) unchanged when the effect is off."""
-    if p_np < 0 or not th[p_np] > 0.0:
-        return force1, force2, 0.0, 0.0
-    softness = c[t + FX_NUT_PLAY_SOFTNESS]
-    slope1 = _play_slope(x[x_np], th[p_np], softness)
-    slope2 = _play_slope(x[x_np + 1], th[p_np], softness)
-    return (1.0 - slope1) * force1, (1.0 - slope2) * force2, slope1, slope2
+    play) and the plays' slopes; (force1, force2, 0, 0) unchanged without the effect."""
+    if flags is not None and flags & NUT_PLAY:
+        p_np = int(c[t + FX_NUT_PLAY])
+        x_np = int(c[t + FX_NUT_PLAY + 1])
+        if th[p_np] > 0.0:
+            softness = c[t + FX_NUT_PLAY_SOFTNESS]
+            slope1 = _play_slope(x[x_np], th[p_np], softness)
+            slope2 = _play_slope(x[x_np + 1], th[p_np], softness)
+            return (1.0 - slope1) * force1, (1.0 - slope2) * force2, slope1, slope2
+    return force1, force2, 0.0, 0.0
 
 
-@njit(cache=True, inline="always", error_model="numpy")
-def _nut_play_rates(x, th, c, t, p_np, x_np, omega_u1, omega_u2, slope1, slope2, dx):
+@hook
+def carriage_speeds(flags, x, th, c, t, omega_u1, omega_u2, slope1, slope2, dx):
     """backlash_output: the carriages' speeds in screw radians (the screw's, less its travel
-    inside the play), writing the plays' db/dt into ``dx``; the screws' when off."""
-    if p_np < 0:
-        return omega_u1, omega_u2
-    if not th[p_np] > 0.0:
+    inside the play), writing the plays' db/dt into ``dx``; the screws' without the effect."""
+    if flags is not None and flags & NUT_PLAY:
+        p_np = int(c[t + FX_NUT_PLAY])
+        x_np = int(c[t + FX_NUT_PLAY + 1])
+        if th[p_np] > 0.0:
+            softness, relaxation = c[t + FX_NUT_PLAY_SOFTNESS], c[t + FX_NUT_PLAY_RELAXATION]
+            b_rate1 = _play_rate(x[x_np], th[p_np], softness, relaxation, omega_u1)
+            b_rate2 = _play_rate(x[x_np + 1], th[p_np], softness, relaxation, omega_u2)
+            dx[x_np] = b_rate1
+            dx[x_np + 1] = b_rate2
+            return omega_u1 - slope1 * b_rate1, omega_u2 - slope2 * b_rate2
         dx[x_np] = 0.0
         dx[x_np + 1] = 0.0
-        return omega_u1, omega_u2
-    softness, relaxation = c[t + FX_NUT_PLAY_SOFTNESS], c[t + FX_NUT_PLAY_RELAXATION]
-    b_rate1 = _play_rate(x[x_np], th[p_np], softness, relaxation, omega_u1)
-    b_rate2 = _play_rate(x[x_np + 1], th[p_np], softness, relaxation, omega_u2)
-    dx[x_np] = b_rate1
-    dx[x_np + 1] = b_rate2
-    return omega_u1 - slope1 * b_rate1, omega_u2 - slope2 * b_rate2
+    return omega_u1, omega_u2
 
 
-@njit(cache=True, inline="always", error_model="numpy")
-def evaluate_htls_effects(x, u, th, c, dx, y):
-    """HT/LS with the effects listed in the layout table of ``c``; states as ``htls.evaluate``
-    followed by the effects' extra states (backlash: b1, b2; compliance: q, dq/dt)."""
-    t = HTLS_FX
-    p_bl = int(c[t + FX_BACKLASH])
-    x_bl = int(c[t + FX_BACKLASH + 1])
-    p_st = int(c[t + FX_STRIBECK])
-    p_sc = int(c[t + FX_COMPLIANCE])
-    x_sc = int(c[t + FX_COMPLIANCE + 1])
-    p_uj1, p_uj2 = _ujoint_positions(c, t)
-    p_ld = int(c[t + FX_LOAD_FRICTION])
-    p_tr = int(c[t + FX_RIPPLE])
-    relaxation, softness = c[t + FX_BACKLASH_RELAXATION], c[t + FX_BACKLASH_SOFTNESS]
-    omega_max = c[t + FX_MODE_OMEGA_MAX]
-    load_fraction = th[p_sc + 2] if p_sc >= 0 else 0.0
-    periods = c[t + FX_RIPPLE_PERIODS]
-    p_np = int(c[t + FX_NUT_PLAY])
-    x_np = int(c[t + FX_NUT_PLAY + 1])
-
-    eps = c[H.C_OMEGA_EPS]
-    i_tp1 = c[H.C_I_TP1]
-    i_tp2 = c[H.C_I_TP2]
-    omega = x[H.X_OMEGA]
-    theta = x[H.X_THETA]
-    # one compliant coupling: shaft_compliance's spring, or backlash_compliant's beyond its band
-    band = -1.0
-    coupling_softness = 0.0
-    p_bc = int(c[t + FX_COUPLING])
-    if p_bc >= 0:
-        p_sc, x_sc = p_bc + 1, int(c[t + FX_COUPLING + 1])
-        load_fraction, omega_max = c[t + FX_COUPLING_LOAD_FRACTION], c[t + FX_COUPLING_OMEGA_MAX]
-        coupling_softness = c[t + FX_COUPLING_SOFTNESS]
-        band = th[p_bc] * i_tp1
-
-    # motor side and shaft end (rigid: both the state Ω)
-    omega_m = omega
-    omega_s = omega
-    theta_m = theta
-    part = 0.0
-    if p_sc >= 0:
-        part, omega_n, zeta, q, q_rate = _compliance(x, th, p_sc, x_sc, load_fraction, omega_max)
-        omega_m = omega + part * load_fraction * q_rate
-        omega_s = omega - part * (1.0 - load_fraction) * q_rate
-        theta_m = theta + part * load_fraction * q
-
-    # bevel-gear plays (one per station)
-    omega_l1 = omega_s
-    omega_l2 = omega_s
-    e1 = 1.0
-    e2 = 1.0
-    if p_bl >= 0:
-        if th[p_bl] > 0.0:
-            omega_l1, e1, b_rate1 = _play(x[x_bl], th[p_bl] * i_tp1, softness, relaxation, omega_s)
-            if x[x_bl + 1] == x[x_bl] and i_tp2 == i_tp1:  # both plays in the same place
-                omega_l2, e2, b_rate2 = omega_l1, e1, b_rate1
-            else:
-                omega_l2, e2, b_rate2 = _play(x[x_bl + 1], th[p_bl] * i_tp2, softness, relaxation, omega_s)
-            dx[x_bl] = b_rate1
-            dx[x_bl + 1] = b_rate2
-        else:
-            dx[x_bl] = 0.0
-            dx[x_bl + 1] = 0.0
-
-    omega_tp1 = omega_l1 / i_tp1
-    omega_tp2 = omega_l2 / i_tp2
-    r = c[H.C_R]
-    f_er1, f_er2, slope1, slope2 = _nut_contact(x, th, c, t, p_np, x_np, u[1], u[2])
-    sign_tp1, sign_tp2, cos1, cos2, f_tp1, f_tp2 = _shared_terms(
-        omega_tp1, omega_tp2, theta / i_tp1, theta / i_tp2, eps, p_uj1, p_uj2, p_st, th)
-    omega_u1, m_er1, m_tser1, m_uer1 = _station(
-        omega_tp1, sign_tp1, cos1, f_tp1, f_er1, th[H.P_B_TS1], th[H.P_C_TS1], th[H.P_B_U1], th[H.P_C_U1],
-        c[H.D_R_SCG], c[H.D_INV_COS_B1], p_uj1, p_st, p_ld, r, th)
-    omega_u2, m_er2, m_tser2, m_uer2 = _station(
-        omega_tp2, sign_tp2, cos2, f_tp2, f_er2, th[H.P_B_TS2], th[H.P_C_TS2], th[H.P_B_U2], th[H.P_C_U2],
-        c[H.D_R_SCG], c[H.D_INV_COS_B2], p_uj2, p_st, p_ld, r, th)
-    carriage1, carriage2 = _nut_play_rates(x, th, c, t, p_np, x_np, omega_u1, omega_u2, slope1, slope2, dx)
-    brake = u[3]
-    m_b21 = brake_torque(brake, omega_tp1, c[H.C_M_BMAX], c[H.C_K_B], c[H.C_OMEGA_HALF], eps)
-    m_b22 = brake_torque(brake, omega_tp2, c[H.C_M_BMAX], c[H.C_K_B], c[H.C_OMEGA_HALF], eps)
-    m_b1 = brake_torque(brake, omega_m, c[H.C_M_BMAX], c[H.C_K_B], c[H.C_OMEGA_HALF], eps)
-    m_tper1 = e1 * (m_uer1 / i_tp1 + th[H.P_B_TP1] * omega_tp1 + th[H.P_C_TP1] * f_tp1 * sign_tp1 + m_b21)
-    m_tper2 = e2 * (m_uer2 / i_tp2 + th[H.P_B_TP2] * omega_tp2 + th[H.P_C_TP2] * f_tp2 * sign_tp2 + m_b22)
-
-    # cascaded P control on the motor speed and the carriage positions
-    y_r = c[H.C_K_Y] * u[0]
-    y_s = 0.5 * (x[H.X_Y1] + x[H.X_Y2])
-    omega_r = th[H.P_P_ACE] * (y_r - y_s)
-    m_n = min(max(th[H.P_P_PCE] * (omega_r - omega_m), c[H.C_M_MIN]), c[H.C_M_MAX])
-    m_ripple = 0.0
-    if p_tr >= 0:
-        m_ripple = th[H.P_K_N] * th[p_tr] * math.sin(periods * theta_m + th[p_tr + 1])
-    if c[t + FX_HARMONICS] >= 0.0:
-        m_ripple = m_ripple + _harmonic_ripple(th, c, t, theta_m, th[H.P_K_N])
-
-    lead = c[H.D_LEAD]
-    net = m_n + m_ripple - (m_b1 + m_tper1 + m_tper2)
-    dx[H.X_OMEGA] = net / th[H.P_J]
-    dx[H.X_Y1] = lead * carriage1
-    dx[H.X_Y2] = lead * carriage2
-    dx[H.X_THETA] = omega
-    if p_sc >= 0:
-        load = m_tper1 + m_tper2
-        j_load = load_fraction * th[H.P_J]
-        j_motor = th[H.P_J] - j_load
-        dx[x_sc] = q_rate
-        dx[x_sc + 1] = _coupling_rate(net, load, j_motor, j_load, omega_n, zeta, q, q_rate, band, coupling_softness)
-
-    y[0] = omega_m
-    y[1] = x[H.X_Y1]
-    y[2] = x[H.X_Y2]
-    y[3] = m_n / th[H.P_K_N]
-    y[4] = omega_tp1
-    y[5] = omega_tp2
-    y[6] = omega_u1
-    y[7] = omega_u2
-    y[8] = m_er1
-    y[9] = m_er2
-    y[10] = m_tser1
-    y[11] = m_tser2
-    y[12] = m_uer1
-    y[13] = m_uer2
-    y[14] = m_tper1
-    y[15] = m_tper2
-
-
-@njit(cache=True, inline="always", error_model="numpy")
-def evaluate_lths_effects(x, u, th, c, dx, y):
-    """LT/HS with the effects listed in the layout table of ``c``; states as ``lths.evaluate``
-    followed by the effects' extra states (backlash: b; compliance: q, dq/dt)."""
-    t = LTHS_FX
-    p_bl = int(c[t + FX_BACKLASH])
-    x_bl = int(c[t + FX_BACKLASH + 1])
-    p_st = int(c[t + FX_STRIBECK])
-    p_sc = int(c[t + FX_COMPLIANCE])
-    x_sc = int(c[t + FX_COMPLIANCE + 1])
-    p_uj1, p_uj2 = _ujoint_positions(c, t)
-    p_ld = int(c[t + FX_LOAD_FRICTION])
-    p_tr = int(c[t + FX_RIPPLE])
-    relaxation, softness = c[t + FX_BACKLASH_RELAXATION], c[t + FX_BACKLASH_SOFTNESS]
-    omega_max = c[t + FX_MODE_OMEGA_MAX]
-    load_fraction = th[p_sc + 2] if p_sc >= 0 else 0.0
-    periods = c[t + FX_RIPPLE_PERIODS]
-    p_np = int(c[t + FX_NUT_PLAY])
-    x_np = int(c[t + FX_NUT_PLAY + 1])
-
-    eps = c[L.C_OMEGA_EPS]
-    i_mg = c[L.C_I_MG]
-    i_bg1 = c[L.C_I_BG1]
-    i_bg2 = c[L.C_I_BG2]
-    i_tp2 = c[L.C_I_TP2]
-    i_a = x[L.X_I_A]
-    omega = x[L.X_OMEGA]
-    theta = x[L.X_THETA]
-    # one compliant coupling: shaft_compliance's spring, or backlash_compliant's beyond its band
-    band = -1.0
-    coupling_softness = 0.0
-    p_bc = int(c[t + FX_COUPLING])
-    if p_bc >= 0:
-        p_sc, x_sc = p_bc + 1, int(c[t + FX_COUPLING + 1])
-        load_fraction, omega_max = c[t + FX_COUPLING_LOAD_FRACTION], c[t + FX_COUPLING_OMEGA_MAX]
-        coupling_softness = c[t + FX_COUPLING_SOFTNESS]
-        band = th[p_bc] * i_mg * i_bg1
-
-    # motor (+ magnetic gear) side and the first bevel gear's end of the input shaft
-    omega_m = omega
-    omega_s = omega
-    theta_m = theta
-    if p_sc >= 0:
-        part, omega_n, zeta, q, q_rate = _compliance(x, th, p_sc, x_sc, load_fraction, omega_max)
-        omega_m = omega + part * load_fraction * q_rate
-        omega_s = omega - part * (1.0 - load_fraction) * q_rate
-        theta_m = theta + part * load_fraction * q
-
-    # play in the first bevel gear, ahead of both stations (motor-scale radians)
-    omega_l = omega_s
-    e = 1.0
-    if p_bl >= 0:
-        if th[p_bl] > 0.0:
-            omega_l, e, b_rate = _play(x[x_bl], th[p_bl] * i_mg * i_bg1, softness, relaxation, omega_s)
-            dx[x_bl] = b_rate
-        else:
-            dx[x_bl] = 0.0
-
-    omega_mg = omega_m / i_mg
-    omega_bg = omega_l / i_mg
-    omega_tp1 = omega_bg / i_bg1
-    omega_mg2 = omega_bg / i_bg2
-    omega_tp2 = omega_mg2 / i_tp2
-    r = c[L.C_R]
-    theta_bg = theta / i_mg
-    f_er1, f_er2, slope1, slope2 = _nut_contact(x, th, c, t, p_np, x_np, u[1], u[2])
-    sign_tp1, sign_tp2, cos1, cos2, f_tp1, f_tp2 = _shared_terms(
-        omega_tp1, omega_tp2, theta_bg / i_bg1, theta_bg / i_bg2 / i_tp2, eps, p_uj1, p_uj2, p_st, th)
-    omega_u1, m_er1, m_tser1, m_uer1 = _station(
-        omega_tp1, sign_tp1, cos1, f_tp1, f_er1, th[L.P_B_TS1], th[L.P_C_TS1], th[L.P_B_U1], th[L.P_C_U1],
-        c[L.D_R_SCG], c[L.D_INV_COS_B1], p_uj1, p_st, p_ld, r, th)
-    omega_u2, m_er2, m_tser2, m_uer2 = _station(
-        omega_tp2, sign_tp2, cos2, f_tp2, f_er2, th[L.P_B_TS2], th[L.P_C_TS2], th[L.P_B_U2], th[L.P_C_U2],
-        c[L.D_R_SCG], c[L.D_INV_COS_B2], p_uj2, p_st, p_ld, r, th)
-    carriage1, carriage2 = _nut_play_rates(x, th, c, t, p_np, x_np, omega_u1, omega_u2, slope1, slope2, dx)
-    brake = u[3]
-    m_b22 = brake_torque(brake, omega_tp2, c[L.C_M_BMAX], c[L.C_K_B], c[L.C_OMEGA_HALF], eps)
-    m_b2 = brake_torque(brake, omega_tp1, c[L.C_M_BMAX], c[L.C_K_B], c[L.C_OMEGA_HALF], eps)
-    m_mg2 = m_uer2 / i_tp2 + th[L.P_B_TP2] * omega_tp2 + th[L.P_C_TP2] * f_tp2 * sign_tp2 + m_b22
-    m_tper = e * (m_uer1 / i_bg1 + m_mg2 / i_bg2 + th[L.P_B_TP1] * omega_tp1
-                  + th[L.P_C_TP1] * f_tp1 * sign_tp1 + m_b2)
-    m_iser = m_tper + c[L.C_D_IS] * theta_m / i_mg
-    c_mg = th[L.P_C_MG]
-    if p_st >= 0:
-        c_mg = c_mg * _stribeck(omega_mg / i_bg1, th[p_st], th[p_st + 1])
-    m_mger = m_iser / i_mg + th[L.P_B_MG] * omega_mg + c_mg * smooth_sign(omega_mg, eps)
-
-    # cascaded P control (eq. 41), voltage-limited, on the motor speed
-    y_r = c[L.C_K_Y] * u[0]
-    y_s = 0.5 * (x[L.X_Y1] + x[L.X_Y2])
-    u_a = th[L.P_P_PCE] / th[L.P_K_N] * (th[L.P_P_ACE] * (y_r - y_s) - omega_m)
-    u_a = min(max(u_a, -c[L.C_U_MAX]), c[L.C_U_MAX])
-    m_ripple = 0.0
-    if p_tr >= 0:
-        m_ripple = th[L.P_K_N] * th[p_tr] * math.sin(periods * theta_m + th[p_tr + 1])
-    if c[t + FX_HARMONICS] >= 0.0:
-        m_ripple = m_ripple + _harmonic_ripple(th, c, t, theta_m, th[L.P_K_N])
-
-    lead = c[L.D_LEAD]
-    net = th[L.P_K_N] * i_a + m_ripple - m_mger
-    dx[L.X_I_A] = (-th[L.P_R_A] * i_a - th[L.P_K_S] * omega_m + u_a) / th[L.P_L_A]
-    dx[L.X_OMEGA] = net / th[L.P_J]
-    dx[L.X_Y1] = lead * carriage1
-    dx[L.X_Y2] = lead * carriage2
-    dx[L.X_THETA] = omega
-    if p_sc >= 0:
-        load = m_iser / i_mg
-        j_load = load_fraction * th[L.P_J]
-        j_motor = th[L.P_J] - j_load
-        dx[x_sc] = q_rate
-        dx[x_sc + 1] = _coupling_rate(net, load, j_motor, j_load, omega_n, zeta, q, q_rate, band, coupling_softness)
-
-    y[0] = omega_m
-    y[1] = x[L.X_Y1]
-    y[2] = x[L.X_Y2]
-    y[3] = i_a
-    y[4] = u_a
-    y[5] = omega_mg
-    y[6] = omega_tp1
-    y[7] = omega_mg2
-    y[8] = omega_tp2
-    y[9] = omega_u1
-    y[10] = omega_u2
-    y[11] = m_er1
-    y[12] = m_er2
-    y[13] = m_tser1
-    y[14] = m_tser2
-    y[15] = m_uer1
-    y[16] = m_uer2
-    y[17] = m_mg2
-    y[18] = m_tper
-    y[19] = m_mger
+@hook
+def motor_torque(flags, th, c, t, theta_m, k_n, torque):
+    """The motor torque ``torque`` with the ripple torques (torque_ripple: k_n A sin(n_p θ + φ);
+    torque_ripple_harmonics: k_n A (sin(n θ + φ1) + h2 sin(2 n θ + φ2) + h3 sin(3 n θ + φ3)))."""
+    if flags is not None and flags & ANY_RIPPLE:
+        m_ripple = 0.0
+        if flags & RIPPLE:
+            p_tr = int(c[t + FX_RIPPLE])
+            m_ripple = k_n * th[p_tr] * math.sin(c[t + FX_RIPPLE_PERIODS] * theta_m + th[p_tr + 1])
+        if flags & HARMONICS:
+            p = int(c[t + FX_HARMONICS])
+            angle = c[t + FX_HARMONICS_PERIODS] * theta_m
+            m_ripple = m_ripple + k_n * th[p] * (math.sin(angle + th[p + 1]) + th[p + 2] * math.sin(2.0 * angle + th[p + 3])
+                                                 + th[p + 4] * math.sin(3.0 * angle + th[p + 5]))
+        return torque + m_ripple
+    return torque

@@ -14,8 +14,9 @@ from numba import njit
 from ..params import Parameter, ParameterSet
 from .base import KERNEL_IDS, Model
 from .effects import CATALOGUE, augment_ema
+from . import effect_kernels as ek
 from .components import (BRAKE_AND_SETTINGS, DEG, brake_torque, const, in_linear_regime, loss_parameters,
-                         rig_gain, screw_constants, smooth_sign, station_torques)
+                         rig_gain, screw_constants)
 
 # --- estimated parameters Θ (eq. 44), kernel positions ----------------------------------
 (P_J, P_B_TS1, P_C_TS1, P_B_U1, P_C_U1, P_B_TP1, P_C_TP1,
@@ -85,51 +86,70 @@ MODEL = Model(
     parameters=PARAMETERS, constants=CONSTANTS, derive=derived_constants, integration_step=5e-4,
     integrator="rk4", rtol=5e-8, state_scales=(30.0, 0.3, 0.3, 500.0),  # Omega, y1, y2, theta
     sensor_sets={"full": OUTPUTS, "realistic": ("Omega", "y1", "y2", "I_A")}, loss_referral=loss_factors,
-    effect_catalogue=CATALOGUE, augment=augment_ema,  # kernel: effect_kernels.evaluate_htls_effects
+    effect_catalogue=CATALOGUE, augment=augment_ema,  # effects: the hooks of effect_kernels in evaluate
 )
 
 
+#: position of the effects' layout table in the kernel constants of an augmented model
+FX_TABLE = D_INV_COS_B2 + 1
+
+
 @njit(cache=True, inline="always", error_model="numpy")
-def evaluate(x, u, th, c, dx, y, outputs=True):
-    """State derivative ``dx`` and all outputs ``y``; ``c`` is ``MODEL.kernel_constants(...)`` at state ``x`` and held input ``u``.
-
-    x = [Omega, y1, y2, theta]; u = [phi_r, F_ER1, F_ER2, brake]; th, c per the layouts above.
-    """
+def evaluate(x, u, th, c, dx, y, outputs=True, flags=None):
+    """State derivative ``dx`` and all outputs ``y``; ``c`` is ``MODEL.kernel_constants(...)``;
+    x = [Omega, y1, y2, theta] followed by the extra states of the effects in ``flags``
+    (``effect_kernels.effect_flags``; None: the nominal model of MODEL_SPEC.md, its effect
+    branches pruned at compile time), which enter through the hooks of ``effect_kernels``."""
+    t = FX_TABLE
     eps = c[C_OMEGA_EPS]
+    i_tp1 = c[C_I_TP1]
+    i_tp2 = c[C_I_TP2]
     omega = x[X_OMEGA]
-    omega_tp1 = omega / c[C_I_TP1]
-    omega_tp2 = omega / c[C_I_TP2]
-    omega_u1 = omega_tp1  # g_U = 1 (eq. 7)
-    omega_u2 = omega_tp2
-    sign_tp1 = smooth_sign(omega_tp1, eps)
-    # the stations' shafts turn alike at equal ratios: tanh is the costliest operation of a step
-    sign_tp2 = sign_tp1 if omega_tp2 == omega_tp1 else smooth_sign(omega_tp2, eps)
+    theta = x[X_THETA]
+    # motor side and shaft end (rigid: both the state Omega)
+    omega_m, omega_s, theta_m, coupling = ek.coupling(flags, x, th, c, t, omega, theta, i_tp1, 1.0)
+    # bevel-gear plays (one per station)
+    omega_l1, e1 = ek.gear_play(flags, x, th, c, t, 0, i_tp1, 1.0, omega_s, dx)
+    omega_l2, e2 = ek.gear_play(flags, x, th, c, t, 1, i_tp2, 1.0, omega_s, dx)
 
-    m_er1, m_tser1, m_uer1 = station_torques(omega_u1, sign_tp1, u[1], th[P_B_TS1], th[P_C_TS1], th[P_B_U1],
-                                             th[P_C_U1], c[D_R_SCG], c[D_INV_COS_B1])
-    m_er2, m_tser2, m_uer2 = station_torques(omega_u2, sign_tp2, u[2], th[P_B_TS2], th[P_C_TS2], th[P_B_U2],
-                                             th[P_C_U2], c[D_R_SCG], c[D_INV_COS_B2])
+    omega_tp1 = omega_l1 / i_tp1  # eq. 4
+    omega_tp2 = omega_l2 / i_tp2
+    f_er1, f_er2, slope1, slope2 = ek.nut_contact(flags, x, th, c, t, u[1], u[2])
+    # the stations' shafts turn alike at equal ratios: tanh is the costliest operation of a step
+    sign_tp1, sign_tp2, cos1, cos2, f_tp1, f_tp2 = ek.station_terms(flags, th, c, t, omega_tp1, omega_tp2,
+                                                                    theta / i_tp1, theta / i_tp2, eps)
+    omega_u1, m_er1, m_tser1, m_uer1 = ek.station(
+        flags, th, c, t, 1, omega_tp1, sign_tp1, cos1, f_tp1, f_er1, th[P_B_TS1], th[P_C_TS1], th[P_B_U1],
+        th[P_C_U1], c[D_R_SCG], c[D_INV_COS_B1], c[C_R])
+    omega_u2, m_er2, m_tser2, m_uer2 = ek.station(
+        flags, th, c, t, 2, omega_tp2, sign_tp2, cos2, f_tp2, f_er2, th[P_B_TS2], th[P_C_TS2], th[P_B_U2],
+        th[P_C_U2], c[D_R_SCG], c[D_INV_COS_B2], c[C_R])
+    carriage1, carriage2 = ek.carriage_speeds(flags, x, th, c, t, omega_u1, omega_u2, slope1, slope2, dx)
     brake = u[3]
     m_b21 = brake_torque(brake, omega_tp1, c[C_M_BMAX], c[C_K_B], c[C_OMEGA_HALF], eps)
     m_b22 = brake_torque(brake, omega_tp2, c[C_M_BMAX], c[C_K_B], c[C_OMEGA_HALF], eps)
-    m_b1 = brake_torque(brake, omega, c[C_M_BMAX], c[C_K_B], c[C_OMEGA_HALF], eps)
-    m_tper1 = m_uer1 / c[C_I_TP1] + th[P_B_TP1] * omega_tp1 + th[P_C_TP1] * sign_tp1 + m_b21
-    m_tper2 = m_uer2 / c[C_I_TP2] + th[P_B_TP2] * omega_tp2 + th[P_C_TP2] * sign_tp2 + m_b22
+    m_b1 = brake_torque(brake, omega_m, c[C_M_BMAX], c[C_K_B], c[C_OMEGA_HALF], eps)
+    m_tper1 = ek.transmit(flags, e1, m_uer1 / i_tp1 + th[P_B_TP1] * omega_tp1
+                          + ek.coulomb(flags, th[P_C_TP1], f_tp1) * sign_tp1 + m_b21)
+    m_tper2 = ek.transmit(flags, e2, m_uer2 / i_tp2 + th[P_B_TP2] * omega_tp2
+                          + ek.coulomb(flags, th[P_C_TP2], f_tp2) * sign_tp2 + m_b22)
 
-    # cascaded P control (eqs. 32-35, 38)
+    # cascaded P control (eqs. 32-35, 38) on the motor speed and the carriage positions
     y_r = c[C_K_Y] * u[0]
     y_s = 0.5 * (x[X_Y1] + x[X_Y2])
     omega_r = th[P_P_ACE] * (y_r - y_s)
-    m_n = min(max(th[P_P_PCE] * (omega_r - omega), c[C_M_MIN]), c[C_M_MAX])
+    m_n = min(max(th[P_P_PCE] * (omega_r - omega_m), c[C_M_MIN]), c[C_M_MAX])
 
     lead = c[D_LEAD]
-    dx[X_OMEGA] = (m_n - (m_b1 + m_tper1 + m_tper2)) / th[P_J]
-    dx[X_Y1] = lead * omega_u1
-    dx[X_Y2] = lead * omega_u2
+    net = ek.motor_torque(flags, th, c, t, theta_m, th[P_K_N], m_n) - (m_b1 + m_tper1 + m_tper2)
+    dx[X_OMEGA] = net / th[P_J]
+    dx[X_Y1] = lead * carriage1
+    dx[X_Y2] = lead * carriage2
     dx[X_THETA] = omega
+    ek.coupling_rates(flags, th[P_J], coupling, net, m_tper1 + m_tper2, dx)
 
     if outputs:  # the RK stages between samples need only dx
-        y[0] = omega
+        y[0] = omega_m
         y[1] = x[X_Y1]
         y[2] = x[X_Y2]
         y[3] = m_n / th[P_K_N]

@@ -13,8 +13,9 @@ from numba import njit
 from ..params import Parameter, ParameterSet
 from .base import KERNEL_IDS, Model
 from .effects import CATALOGUE, augment_ema
+from . import effect_kernels as ek
 from .components import (BRAKE_AND_SETTINGS, DEG, brake_torque, const, in_linear_regime, loss_parameters,
-                         rig_gain, screw_constants, smooth_sign, station_torques)
+                         rig_gain, screw_constants)
 
 # --- estimated parameters Θ (eq. 47), kernel positions ----------------------------------
 (P_J, P_B_TS1, P_C_TS1, P_B_U1, P_C_U1, P_B_TP1, P_C_TP1,
@@ -92,54 +93,78 @@ MODEL = Model(
     parameters=PARAMETERS, constants=CONSTANTS, derive=derived_constants, integration_step=2e-4,
     integrator="rk4", rtol=2e-8, state_scales=(30.0, 900.0, 0.3, 0.3, 1000.0),  # I_A, Omega, y1, y2, theta
     sensor_sets={"full": OUTPUTS, "realistic": ("Omega", "y1", "y2", "I_A", "U_A")}, loss_referral=loss_factors,
-    effect_catalogue=CATALOGUE, augment=augment_ema,  # kernel: effect_kernels.evaluate_lths_effects
+    effect_catalogue=CATALOGUE, augment=augment_ema,  # effects: the hooks of effect_kernels in evaluate
 )
 
 
+#: position of the effects' layout table in the kernel constants of an augmented model
+FX_TABLE = D_INV_COS_B2 + 1
+
+
 @njit(cache=True, inline="always", error_model="numpy")
-def evaluate(x, u, th, c, dx, y, outputs=True):
-    """State derivative ``dx`` and all outputs ``y``; ``c`` is ``MODEL.kernel_constants(...)``; x = [I_A, Omega, y1, y2, theta]."""
+def evaluate(x, u, th, c, dx, y, outputs=True, flags=None):
+    """State derivative ``dx`` and all outputs ``y``; ``c`` is ``MODEL.kernel_constants(...)``;
+    x = [I_A, Omega, y1, y2, theta] followed by the extra states of the effects in ``flags``
+    (``effect_kernels.effect_flags``; None: the nominal model of MODEL_SPEC.md, its effect
+    branches pruned at compile time), which enter through the hooks of ``effect_kernels``."""
+    t = FX_TABLE
     eps = c[C_OMEGA_EPS]
+    i_mg = c[C_I_MG]
+    i_bg1 = c[C_I_BG1]
+    i_bg2 = c[C_I_BG2]
+    i_tp2 = c[C_I_TP2]
     i_a = x[X_I_A]
     omega = x[X_OMEGA]
-    omega_mg = omega / c[C_I_MG]
-    omega_tp1 = omega_mg / c[C_I_BG1]
-    omega_mg2 = omega_mg / c[C_I_BG2]
-    omega_tp2 = omega_mg2 / c[C_I_TP2]
-    omega_u1 = omega_tp1  # g_U = 1 (eq. 26)
-    omega_u2 = omega_tp2
-    sign_tp1 = smooth_sign(omega_tp1, eps)
-    # the stations' shafts turn alike at equal ratios: tanh is the costliest operation of a step
-    sign_tp2 = sign_tp1 if omega_tp2 == omega_tp1 else smooth_sign(omega_tp2, eps)
+    theta = x[X_THETA]
+    # motor (+ magnetic gear) side and the first bevel gear's end of the input shaft
+    omega_m, omega_s, theta_m, coupling = ek.coupling(flags, x, th, c, t, omega, theta, i_mg, i_bg1)
+    # play in the first bevel gear, ahead of both stations (motor-scale radians)
+    omega_l, e = ek.gear_play(flags, x, th, c, t, 0, i_mg, i_bg1, omega_s, dx)
 
-    m_er1, m_tser1, m_uer1 = station_torques(omega_u1, sign_tp1, u[1], th[P_B_TS1], th[P_C_TS1], th[P_B_U1],
-                                             th[P_C_U1], c[D_R_SCG], c[D_INV_COS_B1])
-    m_er2, m_tser2, m_uer2 = station_torques(omega_u2, sign_tp2, u[2], th[P_B_TS2], th[P_C_TS2], th[P_B_U2],
-                                             th[P_C_U2], c[D_R_SCG], c[D_INV_COS_B2])
+    omega_mg = omega_m / i_mg  # eqs. 23, 24, 30
+    omega_bg = omega_l / i_mg
+    omega_tp1 = omega_bg / i_bg1
+    omega_mg2 = omega_bg / i_bg2
+    omega_tp2 = omega_mg2 / i_tp2
+    theta_bg = theta / i_mg
+    f_er1, f_er2, slope1, slope2 = ek.nut_contact(flags, x, th, c, t, u[1], u[2])
+    # the stations' shafts turn alike at equal ratios: tanh is the costliest operation of a step
+    sign_tp1, sign_tp2, cos1, cos2, f_tp1, f_tp2 = ek.station_terms(
+        flags, th, c, t, omega_tp1, omega_tp2, theta_bg / i_bg1, theta_bg / i_bg2 / i_tp2, eps)
+    omega_u1, m_er1, m_tser1, m_uer1 = ek.station(
+        flags, th, c, t, 1, omega_tp1, sign_tp1, cos1, f_tp1, f_er1, th[P_B_TS1], th[P_C_TS1], th[P_B_U1],
+        th[P_C_U1], c[D_R_SCG], c[D_INV_COS_B1], c[C_R])
+    omega_u2, m_er2, m_tser2, m_uer2 = ek.station(
+        flags, th, c, t, 2, omega_tp2, sign_tp2, cos2, f_tp2, f_er2, th[P_B_TS2], th[P_C_TS2], th[P_B_U2],
+        th[P_C_U2], c[D_R_SCG], c[D_INV_COS_B2], c[C_R])
+    carriage1, carriage2 = ek.carriage_speeds(flags, x, th, c, t, omega_u1, omega_u2, slope1, slope2, dx)
     brake = u[3]
     m_b22 = brake_torque(brake, omega_tp2, c[C_M_BMAX], c[C_K_B], c[C_OMEGA_HALF], eps)
     m_b2 = brake_torque(brake, omega_tp1, c[C_M_BMAX], c[C_K_B], c[C_OMEGA_HALF], eps)
-    m_mg2 = m_uer2 / c[C_I_TP2] + th[P_B_TP2] * omega_tp2 + th[P_C_TP2] * sign_tp2 + m_b22
-    m_tper = (m_uer1 / c[C_I_BG1] + m_mg2 / c[C_I_BG2] + th[P_B_TP1] * omega_tp1
-              + th[P_C_TP1] * sign_tp1 + m_b2)
-    m_iser = m_tper + c[C_D_IS] * x[X_THETA] / c[C_I_MG]
-    m_mger = m_iser / c[C_I_MG] + th[P_B_MG] * omega_mg + th[P_C_MG] * smooth_sign(omega_mg, eps)
+    m_mg2 = m_uer2 / i_tp2 + th[P_B_TP2] * omega_tp2 + ek.coulomb(flags, th[P_C_TP2], f_tp2) * sign_tp2 + m_b22
+    m_tper = ek.transmit(flags, e, m_uer1 / i_bg1 + m_mg2 / i_bg2 + th[P_B_TP1] * omega_tp1
+                         + ek.coulomb(flags, th[P_C_TP1], f_tp1) * sign_tp1 + m_b2)
+    m_iser = m_tper + c[C_D_IS] * theta_m / i_mg  # eq. 22
+    c_mg = ek.stribeck_coulomb(flags, th, c, t, th[P_C_MG], omega_mg / i_bg1)
+    m_mger = m_iser / i_mg + th[P_B_MG] * omega_mg + c_mg * ek.smooth_sign(omega_mg, eps)
 
-    # cascaded P control (eq. 41), voltage-limited
+    # cascaded P control (eq. 41), voltage-limited, on the motor speed
     y_r = c[C_K_Y] * u[0]
     y_s = 0.5 * (x[X_Y1] + x[X_Y2])
-    u_a = th[P_P_PCE] / th[P_K_N] * (th[P_P_ACE] * (y_r - y_s) - omega)
+    u_a = th[P_P_PCE] / th[P_K_N] * (th[P_P_ACE] * (y_r - y_s) - omega_m)
     u_a = min(max(u_a, -c[C_U_MAX]), c[C_U_MAX])
 
     lead = c[D_LEAD]
-    dx[X_I_A] = (-th[P_R_A] * i_a - th[P_K_S] * omega + u_a) / th[P_L_A]
-    dx[X_OMEGA] = (th[P_K_N] * i_a - m_mger) / th[P_J]
-    dx[X_Y1] = lead * omega_u1
-    dx[X_Y2] = lead * omega_u2
+    net = ek.motor_torque(flags, th, c, t, theta_m, th[P_K_N], th[P_K_N] * i_a) - m_mger
+    dx[X_I_A] = (-th[P_R_A] * i_a - th[P_K_S] * omega_m + u_a) / th[P_L_A]
+    dx[X_OMEGA] = net / th[P_J]
+    dx[X_Y1] = lead * carriage1
+    dx[X_Y2] = lead * carriage2
     dx[X_THETA] = omega
+    ek.coupling_rates(flags, th[P_J], coupling, net, m_iser / i_mg, dx)
 
     if outputs:  # the RK stages between samples need only dx
-        y[0] = omega
+        y[0] = omega_m
         y[1] = x[X_Y1]
         y[2] = x[X_Y2]
         y[3] = i_a

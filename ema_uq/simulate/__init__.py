@@ -14,8 +14,8 @@ evaluations than "dopri5" on HT/LS and 20x on LT/HS. With ``share_steps`` a batc
 first set's step sequence (and its choice of exact intervals) so that finite differences stay
 smooth.
 
-Modules: ``dispatch`` (from a model's kernel id to its right-hand side), ``integrators`` (the
-RK4 and Dormand-Prince loops and their batch entries), ``linear`` (the exact steps of
+Modules: ``dispatch`` (from a model to its right-hand side and effect set), ``integrators``
+(the RK4 and Dormand-Prince loops and their batch entries), ``linear`` (the exact steps of
 "hybrid"); this package's top level checks the arguments, runs the kernels and holds the
 result types.
 """
@@ -27,13 +27,12 @@ import numpy as np
 
 from ..models import Model, get_model
 from .dispatch import (EFFECT_KERNELS, HTLS_EFFECTS_KERNEL, HTLS_KERNEL, LTHS_EFFECTS_KERNEL,  # noqa: F401
-                       LTHS_KERNEL, NOMINAL_KERNELS, SimulationError, kernel_family)
-from .integrators import (DP_A, DP_DIVERGED, DP_E, _dopri_batch, _dopri_batch_effects,  # noqa: F401
-                          _dopri_batch_shared, _dopri_batch_shared_effects, _dopri_one, _dp_error,
-                          _dp_stage_state, _integrate_batch, _integrate_batch_effects)
+                       LTHS_KERNEL, NOMINAL_KERNELS, SimulationError, kernel_family, kernel_key)
+from .integrators import (DP_A, DP_DIVERGED, DP_E, _dopri_batch, _dopri_batch_flags,  # noqa: F401
+                          _dopri_batch_shared, _dopri_batch_shared_flags, _dopri_one, _dopri_one_nominal, _dp_error,
+                          _dp_stage_state, _integrate_batch, _integrate_batch_flags)
 from .linear import (ZOH_CHECKS, _dp_stability_radius, _dp_stable_steps, _hybrid_setup,  # noqa: F401
                      _zoh_propagators, stable_steps)
-
 
 INTEGRATORS = ("dopri5", "hybrid", "rk4")
 
@@ -152,26 +151,24 @@ def simulate_batch(
         if model.postprocess is not None:
             out = model.postprocess(model, thetas, time, out)
         return out[0] if single else out
-    effects = kernel_family(model) == "effects"
+    model_id, flags = kernel_key(model)
+    nominal = kernel_family(model) == "nominal"
     x0 = np.zeros(model.n_states) if x0 is None else np.ascontiguousarray(x0, dtype=np.float64)
     out = np.empty((thetas.shape[0], time.size, model.n_outputs))
+    kernel_consts = model.kernel_constants(consts)
+    # a nominal model runs the entries compiled for the nominal equations, a model with effects
+    # the entries that take its effects' bit set at run time (one compiled kernel for all sets)
+    prefix = (model_id,) if nominal else (model_id, flags)
     if method == "rk4":
-        kernel = _integrate_batch_effects if effects else _integrate_batch
-        kernel(model.model_id, thetas, model.kernel_constants(consts), inputs, x0, h, n_sub, out)
-    elif effects:  # no linear regime is declared for the augmented models: "hybrid" is Dormand-Prince
-        args = (model.model_id, thetas, model.kernel_constants(consts), inputs, x0, dt, tol, error_scales(model, thetas))
+        kernel = _integrate_batch if nominal else _integrate_batch_flags
+        kernel(*prefix, thetas, kernel_consts, inputs, x0, h, n_sub, out)
+    else:  # no linear regime is declared for the augmented models: "hybrid" is Dormand-Prince there
+        args = (*prefix, thetas, kernel_consts, inputs, x0, dt, tol, error_scales(model, thetas),
+                *_hybrid_setup(model, thetas, kernel_consts, dt, method == "hybrid" and nominal))
         if share_steps and thetas.shape[0] > 1:
-            _run_shared(_dopri_batch_shared_effects, args, out, time.size)
+            _run_shared(_dopri_batch_shared if nominal else _dopri_batch_shared_flags, args, out, time.size)
         else:
-            _dopri_batch_effects(*args, out)
-    else:
-        kernel_consts = model.kernel_constants(consts)
-        args = (model.model_id, thetas, kernel_consts, inputs, x0, dt, tol, error_scales(model, thetas),
-                *_hybrid_setup(model, thetas, kernel_consts, dt, method == "hybrid"))
-        if share_steps and thetas.shape[0] > 1:
-            _run_shared(_dopri_batch_shared, args, out, time.size)
-        else:
-            _dopri_batch(*args, out)
+            (_dopri_batch if nominal else _dopri_batch_flags)(*args, out)
     if model.postprocess is not None:  # output-side effects (sensor delay), batched in numpy
         out = model.postprocess(model, thetas, time, out)
     return out[0] if single else out
@@ -216,10 +213,11 @@ def step_statistics(model: Model | str, theta, time, inputs, *, integrator: str 
     kernel_consts = model.kernel_constants(consts)
     props, h_stable = _hybrid_setup(model, theta[None], kernel_consts, dt, integrator == "hybrid")
     while True:
-        accepted, rejected = _dopri_one(model.model_id, theta, kernel_consts, inputs, np.zeros(model.n_states), dt,
-                                        model.rtol if rtol is None else float(rtol),
-                                        error_scales(model, theta[None])[0], props[0], h_stable[0],
-                                        out, np.empty(capacity), counts)
+        accepted, rejected = _dopri_one_nominal(model.model_id, theta, kernel_consts, inputs,
+                                                np.zeros(model.n_states), dt,
+                                                model.rtol if rtol is None else float(rtol),
+                                                error_scales(model, theta[None])[0], props[0], h_stable[0],
+                                                out, np.empty(capacity), counts)
         if accepted == DP_DIVERGED:
             raise SimulationError("the trajectory left the finite numbers (diverged); check the parameter values")
         if accepted >= 0:

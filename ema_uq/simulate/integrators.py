@@ -1,8 +1,15 @@
-"""The integration loops and their parallel batch entries.
+"""The integration loops, one per method, for the nominal and the augmented state vectors.
 
-Fixed-step RK4 (``_integrate_batch``) and adaptive Dormand-Prince 5(4) (``_dopri_batch``,
-``_dopri_batch_shared``; with propagators, exact steps over the linear regime of ``linear.py``)
-for the nominal models, and the same loops for the models with unmodelled effects (``*_effects``).
+Between samples the state is advanced by ``n_sub`` classical RK4 steps (``_integrate_one``)
+or by adaptive Dormand-Prince 5(4) steps (``_dopri_one``; with propagators, exact steps over
+the linear regime: ``linear.py``). Every loop takes the concept's kernel id and the effects'
+bit set ``flags`` (``models.effect_kernels.effect_flags``) and passes both down to the
+concept's one right-hand side. Each method has one parallel batch entry taking ``flags``
+(``*_flags``) and a nominal entry that passes ``NOMINAL`` (None): numba compiles the loops
+and the effect hooks once for that type and prunes the effects' branches before typing them,
+so the nominal kernel holds the nominal arithmetic only. The entries with effects take
+``flags`` as a run-time integer: one compiled kernel per method serves every effect set, each
+effect's physics behind a test of its bit, so no effect set compiles a kernel of its own.
 """
 from __future__ import annotations
 
@@ -11,62 +18,23 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from .dispatch import _evaluate, _evaluate_effects
+from ..models import effect_kernels as ek
+from .dispatch import _evaluate
 from .linear import _zoh_interval, _zoh_step
 
 
+#: the effects' bit set of the nominal models: ``None``, a type of its own, so that numba prunes
+#: every ``flags is not None and ...`` branch of the right-hand side before it types the code
+NOMINAL = None
+
+
+# --- fixed-step RK4 -------------------------------------------------------------------------
 @njit(cache=True, error_model="numpy")
-def _integrate_one(model_id, th, consts, inputs, x0, h, n_sub, out):
-    """Integrate one parameter vector; writes outputs (n_samples, n_outputs) into ``out``."""
-    n_x = x0.shape[0]
-    n_y = out.shape[1]
-    x = x0.copy()
-    xt = np.empty(n_x)
-    k1 = np.empty(n_x)
-    k2 = np.empty(n_x)
-    k3 = np.empty(n_x)
-    k4 = np.empty(n_x)
-    scratch = np.empty(n_y)
-    n_samples = inputs.shape[0]
-    for k in range(n_samples):
-        u = inputs[k]
-        # outputs at t_k and the first RK4 stage of the next interval share one evaluation
-        _evaluate(model_id, x, u, th, consts, k1, out[k])
-        if k == n_samples - 1:
-            break
-        for sub in range(n_sub):
-            if sub > 0:
-                _evaluate(model_id, x, u, th, consts, k1, scratch, False)
-            for i in range(n_x):
-                xt[i] = x[i] + 0.5 * h * k1[i]
-            _evaluate(model_id, xt, u, th, consts, k2, scratch, False)
-            for i in range(n_x):
-                xt[i] = x[i] + 0.5 * h * k2[i]
-            _evaluate(model_id, xt, u, th, consts, k3, scratch, False)
-            for i in range(n_x):
-                xt[i] = x[i] + h * k3[i]
-            _evaluate(model_id, xt, u, th, consts, k4, scratch, False)
-            for i in range(n_x):
-                x[i] += h / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
+def _integrate_one(model_id, flags, th, consts, inputs, x0, h, n_sub, out):
+    """Integrate one parameter vector; writes outputs (n_samples, n_outputs) into ``out``.
 
-
-@njit(cache=True, parallel=True, error_model="numpy")
-def _integrate_batch(model_id, thetas, consts, inputs, x0, h, n_sub, out):
-    """Kernel entry: thetas (n_sets, n_params) -> out (n_sets, n_samples, n_outputs)."""
-    for s in prange(thetas.shape[0]):
-        _integrate_one(model_id, thetas[s], consts, inputs, x0, h, n_sub, out[s])
-
-
-# --- models with unmodelled effects (models/effects.py) -------------------------------------
-# A second entry with the same RK4 loop around the augmented right-hand sides. Kept apart
-# so that the nominal kernel above is exactly the nominal one (and compiles as fast), and the
-# larger effect equations are compiled, inlined, only when an augmented model is first used.
-@njit(cache=True, error_model="numpy")
-def _integrate_one_effects(model_id, th, consts, inputs, x0, h, n_sub, out):
-    """``_integrate_one`` for an augmented model: the same RK4 arithmetic, written with one
-    call site of the inlined right-hand side (inlined at four call sites like the nominal
-    kernel, the larger effect equations take minutes to compile; called, not inlined, they
-    cost ~60 ns more per evaluation)."""
+    One call site of the (inlined) right-hand side: inlined at each of the four stages, the
+    equations with effects took minutes to compile."""
     n_x = x0.shape[0]
     x = x0.copy()
     xt = np.empty(n_x)
@@ -88,21 +56,14 @@ def _integrate_one_effects(model_id, th, consts, inputs, x0, h, n_sub, out):
                     for i in range(n_x):
                         xt[i] = x[i] + h * stages[2, i]
                 # outputs at t_k and the first RK4 stage of the next interval share one evaluation
-                target = out[k] if sub == 0 and stage == 0 else scratch
-                _evaluate_effects(model_id, xt, u, th, consts, stages[stage], target)
+                sample = sub == 0 and stage == 0
+                _evaluate(model_id, flags, xt, u, th, consts, stages[stage], out[k] if sample else scratch, sample)
                 if last:
                     break
             if last:
                 break
             for i in range(n_x):
                 x[i] += h / 6.0 * (stages[0, i] + 2.0 * stages[1, i] + 2.0 * stages[2, i] + stages[3, i])
-
-
-@njit(cache=True, parallel=True, error_model="numpy")
-def _integrate_batch_effects(model_id, thetas, consts, inputs, x0, h, n_sub, out):
-    """``_integrate_batch`` for an augmented model."""
-    for s in prange(thetas.shape[0]):
-        _integrate_one_effects(model_id, thetas[s], consts, inputs, x0, h, n_sub, out[s])
 
 
 # --- adaptive Dormand-Prince 5(4) -----------------------------------------------------------
@@ -211,13 +172,25 @@ def _dp_accept(x, stages, xt):
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _dp_sample(model_id, x, inputs, j, u, th, consts, stages, k, scratch, out):
+def _freeze(flags, dx, scale):
+    """Zero the derivatives of the states with ``scale < 0`` (an effect at its ``off`` value
+    whose states feed nothing: the stiff shaft mode of ``shaft_compliance`` at period 0 would
+    otherwise be integrated, unresolved, for nothing); nothing without effect states."""
+    if flags is not None and flags & ek.STATEFUL:
+        for i in range(dx.shape[0]):
+            if scale[i] < 0.0:
+                dx[i] = 0.0
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _dp_sample(model_id, flags, x, inputs, j, u, th, consts, scale, stages, k, scratch, out):
     """Outputs at sample j into ``out[j]`` and the first stage of its interval into
     ``stages[0]``; ``u`` receives the held input. Rows are copied in and out rather than
     viewed: a view costs two atomic reference-count updates, more than the copy."""
     for i in range(u.shape[0]):
         u[i] = inputs[j, i]
-    _evaluate(model_id, x, u, th, consts, k, scratch)
+    _evaluate(model_id, flags, x, u, th, consts, k, scratch)
+    _freeze(flags, k, scale)
     for i in range(x.shape[0]):
         stages[0, i] = k[i]
     for i in range(scratch.shape[0]):
@@ -225,12 +198,13 @@ def _dp_sample(model_id, x, inputs, j, u, th, consts, stages, k, scratch, out):
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _dp_stages(model_id, x, u, th, consts, stages, h, xt, k, scratch):
+def _dp_stages(model_id, flags, x, u, th, consts, scale, stages, h, xt, k, scratch):
     """Stages 2-7 of a step of length ``h`` from ``x`` (derivatives only); ``xt`` ends as
     the 5th-order solution."""
     for s in range(1, 7):
         _dp_stage_state(x, stages, s, h, xt)
-        _evaluate(model_id, xt, u, th, consts, k, scratch, False)
+        _evaluate(model_id, flags, xt, u, th, consts, k, scratch, False)
+        _freeze(flags, k, scale)
         for i in range(x.shape[0]):
             stages[s, i] = k[i]
 
@@ -238,28 +212,28 @@ def _dp_stages(model_id, x, u, th, consts, stages, h, xt, k, scratch):
 @njit(cache=True, inline="always", error_model="numpy")
 def _dp_workspace(x0, n_outputs):
     """Working arrays of one adaptive run: the state (a copy of ``x0``), the state where a
-    stage is evaluated, the 7 stage derivatives and an output scratch row."""
+    stage is evaluated, the 7 stage derivatives, a derivative and an output scratch row."""
     n_x = x0.shape[0]
-    return x0.copy(), np.empty(n_x), np.empty((7, n_x)), np.empty(n_outputs)
+    return x0.copy(), np.empty(n_x), np.empty((7, n_x)), np.empty(n_x), np.empty(n_outputs)
 
 
 @njit(cache=True, error_model="numpy")
-def _dopri_one(model_id, th, consts, inputs, x0, dt, rtol, scale, props, h_stable, out, steps, counts):
+def _dopri_one(model_id, flags, th, consts, inputs, x0, dt, rtol, scale, props, h_stable, out, steps, counts):
     """Adaptive DP5(4) run of one parameter vector; writes outputs (n_samples, n_outputs) into ``out``.
 
     ``scale`` (n_states,): absolute error scale of each state (its typical magnitude; the
-    absolute tolerance is rtol * scale), 0 to leave a state out of the error norm. Returns the
+    absolute tolerance is rtol * scale), 0 to leave a state out of the error norm, -1 to freeze
+    it (:func:`_freeze`). Returns the
     numbers of accepted and rejected steps. With propagators ``props`` (n_checks, 2, n, n),
-    :func:`_zoh_propagator_sets`, intervals in the linear regime take the exact step
+    :func:`linear._zoh_propagator_sets`, intervals in the linear regime take the exact step
     (integrator "hybrid"; none for n_checks = 0, plain Dormand-Prince), and no step is longer
-    than ``h_stable`` (:func:`stable_steps`; infinite for plain Dormand-Prince). A non-empty
+    than ``h_stable`` (:func:`linear.stable_steps`; infinite for plain Dormand-Prince). A non-empty
     ``steps`` records the accepted step lengths in order and ``counts`` (n_samples - 1,) their
     number per sample interval (0: an exact step), for :func:`_dopri_replay_one`; the accepted
     count is -1 when ``steps`` is too short, DP_DIVERGED when the trajectory left the finite
     numbers (the outputs from the next sample on are NaN, as RK4 gives them).
     """
-    x, xt, stages, scratch = _dp_workspace(x0, out.shape[1])
-    k = np.empty(x0.shape[0])
+    x, xt, stages, k, scratch = _dp_workspace(x0, out.shape[1])
     n_checks = props.shape[0]
     delta = dt / max(n_checks, 1)
     n_samples = inputs.shape[0]
@@ -269,7 +243,7 @@ def _dopri_one(model_id, th, consts, inputs, x0, dt, rtol, scale, props, h_stabl
     recording = steps.shape[0] > 0
     u = np.empty(inputs.shape[1])
     for j in range(n_samples):
-        _dp_sample(model_id, x, inputs, j, u, th, consts, stages, k, scratch, out)
+        _dp_sample(model_id, flags, x, inputs, j, u, th, consts, scale, stages, k, scratch, out)
         if j == n_samples - 1:
             break
         if n_checks > 0 and _zoh_interval(model_id, x, stages[0], u, th, consts, props, delta, xt, k):
@@ -285,7 +259,7 @@ def _dopri_one(model_id, th, consts, inputs, x0, dt, rtol, scale, props, h_stabl
             final = h >= rest
             if final:
                 h = rest
-            _dp_stages(model_id, x, u, th, consts, stages, h, xt, k, scratch)
+            _dp_stages(model_id, flags, x, u, th, consts, scale, stages, h, xt, k, scratch)
             err = _dp_error(x, xt, stages, h, rtol, scale)
             if err <= 1.0:
                 if recording:
@@ -312,28 +286,19 @@ def _dopri_one(model_id, th, consts, inputs, x0, dt, rtol, scale, props, h_stabl
     return n_accepted, n_rejected
 
 
-@njit(cache=True, parallel=True, error_model="numpy")
-def _dopri_batch(model_id, thetas, consts, inputs, x0, dt, rtol, scales, props, h_stable, out):
-    """Kernel entry: thetas (n_sets, n_params), scales (n_sets, n_states), props (n_sets,
-    n_checks, 2, n, n), h_stable (n_sets,) -> out (n_sets, n_samples, n_outputs)."""
-    for s in prange(thetas.shape[0]):
-        _dopri_one(model_id, thetas[s], consts, inputs, x0, dt, rtol, scales[s], props[s], h_stable[s], out[s],
-                   np.empty(0), np.empty(0, dtype=np.int64))
-
-
 @njit(cache=True, error_model="numpy")
-def _dopri_replay_one(model_id, th, consts, inputs, x0, props, steps, counts, out):
+def _dopri_replay_one(model_id, flags, th, consts, inputs, x0, scale, props, steps, counts, out):
     """The accepted steps recorded by ``_dopri_one``, given (no error control): the same
     arithmetic, so the set that chose the steps is reproduced bit for bit and any other set is
     a smooth function of its parameters along that one step sequence. An interval without
-    steps was an exact linear-regime step: it is repeated with this set's own propagator."""
-    x, xt, stages, scratch = _dp_workspace(x0, out.shape[1])
-    k = np.empty(x0.shape[0])
+    steps was an exact linear-regime step: it is repeated with this set's own propagator;
+    ``scale`` freezes states as in ``_dopri_one``."""
+    x, xt, stages, k, scratch = _dp_workspace(x0, out.shape[1])
     n_samples = inputs.shape[0]
     pos = 0
     u = np.empty(inputs.shape[1])
     for j in range(n_samples):
-        _dp_sample(model_id, x, inputs, j, u, th, consts, stages, k, scratch, out)
+        _dp_sample(model_id, flags, x, inputs, j, u, th, consts, scale, stages, k, scratch, out)
         if j == n_samples - 1:
             break
         if counts[j] == 0 and props.shape[0] > 0:
@@ -341,17 +306,34 @@ def _dopri_replay_one(model_id, th, consts, inputs, x0, props, steps, counts, ou
         for _ in range(counts[j]):
             h = steps[pos]
             pos += 1
-            _dp_stages(model_id, x, u, th, consts, stages, h, xt, k, scratch)
+            _dp_stages(model_id, flags, x, u, th, consts, scale, stages, h, xt, k, scratch)
             _dp_accept(x, stages, xt)
 
 
+# --- the batch entries: one per method taking the effects' bit set, and its nominal entry ------
 @njit(cache=True, parallel=True, error_model="numpy")
-def _dopri_batch_shared(model_id, thetas, consts, inputs, x0, dt, rtol, scales, props, h_stable, out, steps,
-                        counts):
-    """``_dopri_batch`` where set 0 chooses the steps and every other set replays them: finite-
-    difference sensitivities free of the step-selection noise of independent adaptive runs.
-    Returns False (nothing else done) when ``steps`` is too short for set 0's sequence."""
-    n_accepted, _ = _dopri_one(model_id, thetas[0], consts, inputs, x0, dt, rtol, scales[0], props[0],
+def _integrate_batch_flags(model_id, flags, thetas, consts, inputs, x0, h, n_sub, out):
+    """RK4 kernel entry: thetas (n_sets, n_params) -> out (n_sets, n_samples, n_outputs)."""
+    for s in prange(thetas.shape[0]):
+        _integrate_one(model_id, flags, thetas[s], consts, inputs, x0, h, n_sub, out[s])
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _dopri_batch_flags(model_id, flags, thetas, consts, inputs, x0, dt, rtol, scales, props, h_stable, out):
+    """Dormand-Prince kernel entry: thetas (n_sets, n_params), scales (n_sets, n_states), props
+    (n_sets, n_checks, 2, n, n), h_stable (n_sets,) -> out (n_sets, n_samples, n_outputs)."""
+    for s in prange(thetas.shape[0]):
+        _dopri_one(model_id, flags, thetas[s], consts, inputs, x0, dt, rtol, scales[s], props[s], h_stable[s],
+                   out[s], np.empty(0), np.empty(0, dtype=np.int64))
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _dopri_batch_shared_flags(model_id, flags, thetas, consts, inputs, x0, dt, rtol, scales, props, h_stable, out,
+                              steps, counts):
+    """``_dopri_batch_flags`` where set 0 chooses the steps and every other set replays them:
+    finite-difference sensitivities free of the step-selection noise of independent adaptive
+    runs. Returns False (nothing else done) when ``steps`` is too short for set 0's sequence."""
+    n_accepted, _ = _dopri_one(model_id, flags, thetas[0], consts, inputs, x0, dt, rtol, scales[0], props[0],
                                h_stable[0], out[0], steps, counts)
     if n_accepted == DP_DIVERGED:  # no step sequence to follow: differences around it are undefined
         for s in range(1, out.shape[0]):
@@ -360,113 +342,33 @@ def _dopri_batch_shared(model_id, thetas, consts, inputs, x0, dt, rtol, scales, 
     if n_accepted < 0:
         return False
     for s in prange(1, thetas.shape[0]):
-        _dopri_replay_one(model_id, thetas[s], consts, inputs, x0, props[s], steps, counts, out[s])
+        _dopri_replay_one(model_id, flags, thetas[s], consts, inputs, x0, scales[s], props[s], steps, counts,
+                          out[s])
     return True
 
 
-@njit(cache=True, error_model="numpy")
-def _dopri_one_effects(model_id, th, consts, inputs, x0, dt, rtol, scale, out, steps, counts):
-    """``_dopri_one`` for an augmented model, the same arithmetic; states with ``scale < 0``
-    are frozen (an effect at its ``off`` value whose states feed nothing: the stiff shaft mode
-    of ``shaft_compliance`` at period 0 would otherwise be integrated, unresolved, for nothing)."""
-    x, xt, stages, scratch = _dp_workspace(x0, out.shape[1])
-    n_samples = inputs.shape[0]
-    h_open = dt
-    n_accepted = 0
-    n_rejected = 0
-    recording = steps.shape[0] > 0
-    for j in range(n_samples):
-        u = _dp_sample_effects(model_id, x, inputs, j, th, consts, stages, scale, out)
-        if j == n_samples - 1:
-            break
-        t = 0.0
-        h = h_open
-        opening = True
-        while True:
-            rest = dt - t
-            final = h >= rest
-            if final:
-                h = rest
-            for s in range(1, 7):
-                _dp_stage_state(x, stages, s, h, xt)
-                _evaluate_effects(model_id, xt, u, th, consts, stages[s], scratch)
-                _freeze(stages[s], scale)
-            err = _dp_error(x, xt, stages, h, rtol, scale)
-            if err <= 1.0:
-                if recording:
-                    if n_accepted == steps.shape[0]:
-                        return -1, n_rejected
-                    steps[n_accepted] = h
-                    counts[j] += 1
-                _dp_accept(x, stages, xt)
-                n_accepted += 1
-                fac = _dp_factor(err)
-                if opening:
-                    h_open = min(dt, h * fac)
-                    opening = False
-                if final:
-                    break
-                t += h
-                h = h * fac
-            else:
-                n_rejected += 1
-                h = h * _dp_factor(err)
-                if _dp_diverged(err, h, dt):
-                    _fill_nan(out, j + 1)
-                    return DP_DIVERGED, n_rejected
-    return n_accepted, n_rejected
-
-
-@njit(cache=True, inline="always", error_model="numpy")
-def _freeze(dx, scale):
-    for i in range(dx.shape[0]):
-        if scale[i] < 0.0:
-            dx[i] = 0.0
-
-
-@njit(cache=True, inline="always", error_model="numpy")
-def _dp_sample_effects(model_id, x, inputs, j, th, consts, stages, scale, out):
-    """``_dp_sample`` for an augmented model: outputs of sample j and the first stage, frozen
-    states held; returns the held input row."""
-    u = inputs[j]
-    _evaluate_effects(model_id, x, u, th, consts, stages[0], out[j])
-    _freeze(stages[0], scale)
-    return u
-
-
+# the nominal entries: the same calls with the literal NOMINAL (a nominal entry calling the one
+# taking flags would put one more layer of LLVM optimisation over the whole kernel)
 @njit(cache=True, parallel=True, error_model="numpy")
-def _dopri_batch_effects(model_id, thetas, consts, inputs, x0, dt, rtol, scales, out):
-    """``_dopri_batch`` for an augmented model."""
+def _integrate_batch(model_id, thetas, consts, inputs, x0, h, n_sub, out):
+    """``_integrate_batch_flags`` of a nominal model."""
     for s in prange(thetas.shape[0]):
-        _dopri_one_effects(model_id, thetas[s], consts, inputs, x0, dt, rtol, scales[s], out[s],
-                           np.empty(0), np.empty(0, dtype=np.int64))
-
-
-@njit(cache=True, error_model="numpy")
-def _dopri_replay_one_effects(model_id, th, consts, inputs, x0, scale, steps, counts, out):
-    """``_dopri_replay_one`` for an augmented model (frozen states as in ``_dopri_one_effects``)."""
-    x, xt, stages, scratch = _dp_workspace(x0, out.shape[1])
-    n_samples = inputs.shape[0]
-    pos = 0
-    for j in range(n_samples):
-        u = _dp_sample_effects(model_id, x, inputs, j, th, consts, stages, scale, out)
-        if j == n_samples - 1:
-            break
-        for _ in range(counts[j]):
-            h = steps[pos]
-            pos += 1
-            for s in range(1, 7):
-                _dp_stage_state(x, stages, s, h, xt)
-                _evaluate_effects(model_id, xt, u, th, consts, stages[s], scratch)
-                _freeze(stages[s], scale)
-            _dp_accept(x, stages, xt)
+        _integrate_one(model_id, NOMINAL, thetas[s], consts, inputs, x0, h, n_sub, out[s])
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def _dopri_batch_shared_effects(model_id, thetas, consts, inputs, x0, dt, rtol, scales, out, steps, counts):
-    """``_dopri_batch_shared`` for an augmented model."""
-    n_accepted, _ = _dopri_one_effects(model_id, thetas[0], consts, inputs, x0, dt, rtol, scales[0], out[0],
-                                       steps, counts)
+def _dopri_batch(model_id, thetas, consts, inputs, x0, dt, rtol, scales, props, h_stable, out):
+    """``_dopri_batch_flags`` of a nominal model."""
+    for s in prange(thetas.shape[0]):
+        _dopri_one(model_id, NOMINAL, thetas[s], consts, inputs, x0, dt, rtol, scales[s], props[s], h_stable[s],
+                   out[s], np.empty(0), np.empty(0, dtype=np.int64))
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _dopri_batch_shared(model_id, thetas, consts, inputs, x0, dt, rtol, scales, props, h_stable, out, steps, counts):
+    """``_dopri_batch_shared_flags`` of a nominal model."""
+    n_accepted, _ = _dopri_one(model_id, NOMINAL, thetas[0], consts, inputs, x0, dt, rtol, scales[0], props[0],
+                               h_stable[0], out[0], steps, counts)
     if n_accepted == DP_DIVERGED:
         for s in range(1, out.shape[0]):
             _fill_nan(out[s], 0)
@@ -474,5 +376,13 @@ def _dopri_batch_shared_effects(model_id, thetas, consts, inputs, x0, dt, rtol, 
     if n_accepted < 0:
         return False
     for s in prange(1, thetas.shape[0]):
-        _dopri_replay_one_effects(model_id, thetas[s], consts, inputs, x0, scales[s], steps, counts, out[s])
+        _dopri_replay_one(model_id, NOMINAL, thetas[s], consts, inputs, x0, scales[s], props[s], steps, counts,
+                          out[s])
     return True
+
+
+@njit(cache=True, error_model="numpy")
+def _dopri_one_nominal(model_id, th, consts, inputs, x0, dt, rtol, scale, props, h_stable, out, steps, counts):
+    """``_dopri_one`` of a nominal model (step statistics)."""
+    return _dopri_one(model_id, NOMINAL, th, consts, inputs, x0, dt, rtol, scale, props, h_stable, out, steps,
+                      counts)

@@ -1,5 +1,14 @@
-"""Exact steps over the linear regime (integrator "hybrid") and the stability of Dormand-Prince
-steps there."""
+"""Exact steps over the linear regime (integrator "hybrid").
+
+Where a concept is linear (models/htls.py, lths.py: "the linear regime") its held-input
+dynamics dx/dt = A x + b are solved exactly: x(t_k + t) = x_k + Γ(t) f(x_k), f(x_k) being the
+first stage the output evaluation already gives, Γ(t) = ∫_0^t e^{As} ds. Γ and Φ(t) = e^{At}
+(which carries f: f(t) = Φ(t) f(x_k)) are computed once per parameter set at ZOH_CHECKS
+evenly spaced points of the interval; the regime is tested at each, and an interval that
+leaves it anywhere is integrated by Dormand-Prince instead. The transient every held
+reference sample starts (~5 Dormand-Prince steps of 2 ms on HT/LS) costs one
+matrix-vector product per checked point instead.
+"""
 from __future__ import annotations
 
 import math
@@ -10,16 +19,6 @@ from numba import njit
 from ..models import Model
 from .dispatch import SimulationError, _linear_regime, _linear_state_matrix, kernel_family
 
-
-# --- exact steps over the linear regime (integrator "hybrid") ------------------------------
-# Where a concept is linear (models/htls.py, lths.py: "the linear regime") its held-input
-# dynamics dx/dt = A x + b are solved exactly: x(t_k + t) = x_k + Γ(t) f(x_k), f(x_k) being the
-# first stage the output evaluation already gives, Γ(t) = ∫_0^t e^{As} ds. Γ and Φ(t) = e^{At}
-# (which carries f: f(t) = Φ(t) f(x_k)) are computed once per parameter set at ZOH_CHECKS
-# evenly spaced points of the interval; the regime is tested at each, and an interval that
-# leaves it anywhere is integrated by Dormand-Prince instead. The transient every held
-# reference sample starts (~5 Dormand-Prince steps of 2 ms on HT/LS) costs one
-# matrix-vector product per checked point instead.
 ZOH_CHECKS = 4
 #: Taylor degree of the scaled propagators: with the scaled norm <= 1/2 the truncation
 #: error is below 0.5**(ZOH_TAYLOR + 1) / (ZOH_TAYLOR + 2)! ~ 1e-19
@@ -276,3 +275,4 @@ def _zoh_step(x, dx, props, xt):
         xt[i] = x[i] + acc
     for i in range(n):
         x[i] = xt[i]
+

@@ -21,7 +21,7 @@ from numba import njit
 
 from ema_uq import ParameterError, deploy_retract, get_model, io, simulate_batch, synthesize
 from ema_uq.models import htls, lths
-from ema_uq.models.effect_kernels import evaluate_htls_effects, evaluate_lths_effects
+from ema_uq.models.effect_kernels import effect_flags
 from ema_uq.models.effects import CATALOGUE, Effect, EffectError, SIGNATURES, delay_outputs, parse_effect
 from ema_uq.params import Parameter
 
@@ -54,6 +54,20 @@ def nominal_runs(experiment):
         m = get_model(concept)
         out[concept] = simulate_batch(m, m.parameters.nominal, experiment.time, experiment.input_matrix(m))
     return out
+
+
+@njit(cache=True)
+def _rhs(concept_id, flags, x, u, th, c, dx, y):
+    """A concept's right-hand side with the effects of bit set ``flags`` (a runtime value here)."""
+    if concept_id == 0:
+        htls.evaluate(x, u, th, c, dx, y, True, flags)
+    else:
+        lths.evaluate(x, u, th, c, dx, y, True, flags)
+
+
+def evaluate_effects(model, x, u, th, c, dx, y):
+    """``dx`` and ``y`` of the augmented ``model`` at state ``x``, input ``u``."""
+    _rhs(model.base_model.model_id, effect_flags(model.effects), x, u, th, c, dx, y)
 
 
 def runs(model, thetas, experiment):
@@ -320,7 +334,7 @@ def test_ujoint_speed_factor_is_eq8(scale, phase, theta):
                                                                   "ujoint_kinematics_phase": phase})
     x[3] = theta
     dx, y = np.empty(aug.n_states), np.empty(aug.n_outputs)
-    evaluate_htls_effects(x, u, aug.parameters.nominal, aug.kernel_constants(), dx, y)
+    evaluate_effects(aug, x, u, aug.parameters.nominal, aug.kernel_constants(), dx, y)
     out = dict(zip(aug.outputs, y))
     for k, beta in ((1, 3 * DEG), (2, 5 * DEG)):
         g = math.cos(beta) / (1 - math.sin(beta) ** 2 * math.cos(theta / 2 + phase) ** 2)  # eq. 8, theta_TP = theta / i_TP
@@ -334,7 +348,7 @@ def test_stribeck_and_load_dependent_friction_formulas():
     for speed in (0.3, 1.5, 24.0):  # motor speed; the screw turns at half of it
         x[0] = speed
         dx, y = np.empty(aug.n_states), np.empty(aug.n_outputs)
-        evaluate_htls_effects(x, u, aug.parameters.nominal, aug.kernel_constants(), dx, y)
+        evaluate_effects(aug, x, u, aug.parameters.nominal, aug.kernel_constants(), dx, y)
         out = dict(zip(aug.outputs, y))
         w = speed / 2.0
         factor = 1 + 0.8 * math.exp(-(w / 2.0) ** 2)
@@ -432,14 +446,14 @@ def test_shaft_mode_matches_an_independent_two_inertia_model(concept):
     names = aug.parameters.names
     J = th[names.index("J")]
     if concept == "htls":
-        evaluate, x = evaluate_htls_effects, np.array([30.0, 0.05, 0.051, 3.7, 0.0, 0.0])
+        x = np.array([30.0, 0.05, 0.051, 3.7, 0.0, 0.0])
         p_speed = th[names.index("p_PCE")]
         u = np.array([0.155, -9000.0, -7000.0, 0.0])  # control unsaturated
         i1 = i2 = 2.0
         b_load = sum((th[names.index(f"B_TS{k}")] / math.cos(b) + th[names.index(f"B_U{k}")]) / 4.0
                      + th[names.index(f"B_TP{k}")] / 2.0 for k, b in ((1, 3 * DEG), (2, 5 * DEG)))
     else:
-        evaluate, x = evaluate_lths_effects, np.array([20.0, 600.0, 0.05, 0.051, 3.7, 0.0, 0.0])
+        x = np.array([20.0, 600.0, 0.05, 0.051, 3.7, 0.0, 0.0])
         k_n, r_a, l_a = th[names.index("k_n")], th[names.index("R_A")], th[names.index("L_A")]
         p_speed = None  # the current loop is part of the model below
         u = np.array([0.155, -9000.0, -7000.0, 0.0])  # control unsaturated
@@ -455,7 +469,7 @@ def test_shaft_mode_matches_an_independent_two_inertia_model(concept):
 
     def rhs(state):
         dx, y = np.empty(aug.n_states), np.empty(aug.n_outputs)
-        evaluate(state, u, th, c, dx, y)
+        evaluate_effects(aug, state, u, th, c, dx, y)
         return dx
 
     jac = np.empty((x.size, x.size))
