@@ -41,6 +41,7 @@ import math
 from typing import Sequence
 
 from numba import njit
+from numba.core.cpu import CPUTargetOptions
 
 from .effects import CATALOGUE, EFFECT_ORDER, LAYOUT
 
@@ -72,7 +73,9 @@ def effect_flags(names: Sequence[str]) -> int:
 #: decorator of the hooks: compiled on their own (see above), without the numba runtime's
 #: reference counting (``_nrt=False``, an option of numba's CPU target); a hook that allocated
 #: an array would fail to compile, which keeps them to scalars and borrowed arrays
-hook = njit(cache=True, error_model="numpy", _nrt=False)
+hook = (njit(cache=True, error_model="numpy", _nrt=False) if hasattr(CPUTargetOptions, "_nrt")
+        # a numba without the option: the same numbers, at the reference counting's cost
+        else njit(cache=True, error_model="numpy"))
 
 TWO_PI = 2.0 * math.pi
 #: tanh(z) rounds to exactly ±1.0 in double precision for |z| > 19.06: skipping the call there
