@@ -23,7 +23,7 @@ Frozen protocol (``--protocol benchmarks/gap_protocol.yaml``): the file fixes th
 targets, a SHA-256 hash of the diagnosis sources (:data:`SOURCE_FILES` and ``ema_uq/gap/*.py``)
 and two seed blocks: ``development`` (run and look at as often as wanted) and ``evaluation``
 (run once on the final method). ``--block development|evaluation`` runs every self-check
-seed of the block, one outcome JSON per case under ``--results``/<block>/<sources hash>/ (a
+seed of the block, one outcome JSON per case under ``--results`` (default ``benchmarks/protocol_outcomes``, committed)/<block>/<sources hash>/ (a
 rerun resumes; ``--chunk I/N`` runs one part of every seed, for a scheduler's array job),
 writes ``<block>.json`` there and prints the targets of both blocks side by side when both
 exist. The
@@ -78,6 +78,9 @@ SOURCE_FILES = ["ema_uq/models/effects.py", "ema_uq/models/effect_kernels.py", "
                 "ema_uq/models/lths.py", "ema_uq/models/cranfield.py"]
 #: self-check seeds in use before the protocol (reported figures, defaults, calibration): never evaluation seeds
 USED_SEEDS = frozenset({1, 2, 3, 5, DEFAULT_SEED, *CALIBRATION_SEEDS})
+#: per-case outcomes of the protocol's blocks, committed: the evidence behind the reported
+#: figures, and what lets a block scattered over several machines or days resume
+PROTOCOL_OUTCOMES = ROOT / "benchmarks" / "protocol_outcomes"
 DEVELOPMENT_SEEDS = [11, 12, 13]
 EVALUATION_SEEDS = [5201, 5202, 5203]
 #: self-check settings of a protocol block: every case kind, >= 60 none cases (half stressed)
@@ -364,7 +367,7 @@ def side_by_side(results: dict[str, SelfCheckResult]) -> str:
 def protocol_main(path, block: str, *, root: Path = ROOT, out_dir: Path | None = None, jobs: int = 1,
                   chunk: str | None = None) -> None:
     protocol = load_protocol(path)
-    out_dir = Path(out_dir or ROOT / "results" / "gap_protocol")
+    out_dir = Path(out_dir or PROTOCOL_OUTCOMES)
     problem = check_sources(protocol, root=root)
     if problem and block == "evaluation":
         raise SystemExit(problem)
@@ -400,8 +403,9 @@ def main() -> None:
         parser.add_argument("--chunk", metavar="I/N",
                             help="run only every N-th case from case I (counted from 0) of every seed (a scattered "
                                  "job); the block's result comes from a run without --chunk, which reads them back")
-        parser.add_argument("--results", default=str(ROOT / "results" / "gap_protocol"), metavar="DIR",
-                            help="per-case outcomes and block results (default results/gap_protocol)")
+        parser.add_argument("--results", default=str(PROTOCOL_OUTCOMES), metavar="DIR",
+                            help="per-case outcomes and block results (default benchmarks/protocol_outcomes, "
+                                 "kept in the repository: the evidence, and a block resumes on any machine)")
         parser.add_argument("--attest-equivalent", type=int, metavar="N",
                             help="re-run N stored evaluation outcomes on the current sources; if every value is "
                                  "identical, record the current sources' hash as equivalent to the frozen one")
