@@ -23,10 +23,10 @@ Frozen protocol (``--protocol benchmarks/gap_protocol.yaml``): the file fixes th
 targets, a SHA-256 hash of the diagnosis sources (:data:`SOURCE_FILES` and ``ema_uq/gap/*.py``)
 and two seed blocks: ``development`` (run and look at as often as wanted) and ``evaluation``
 (run once on the final method). ``--block development|evaluation`` runs every self-check
-seed of the block, one outcome JSON per case under ``--results`` (default ``benchmarks/protocol_outcomes``, committed)/<block>/<sources hash>/ (a
-rerun resumes; ``--chunk I/N`` runs one part of every seed, for a scheduler's array job),
-writes ``<block>.json`` there and prints the targets of both blocks side by side when both
-exist. The
+seed of the block, one outcome JSON per case under ``<results>/<block>/<sources hash>/``
+(``--results``, default ``benchmarks/protocol_outcomes``, kept in the repository; a rerun
+resumes; ``--chunk I/N`` runs one part of every seed, for a scheduler's array job), writes
+``<block>.json`` there and prints the targets of both blocks side by side when both exist. The
 evaluation block refuses to run when the sources' hash differs from the frozen one: re-freeze
 with ``--freeze`` (new hash and a NEW evaluation block; the old block is recorded as spent,
 never to be reused). ``--freeze`` on a protocol whose hash still holds keeps its blocks
