@@ -204,13 +204,18 @@ def _bench():
     return module
 
 
-def test_protocol_refuses_the_evaluation_block_when_a_source_changed(tmp_path, monkeypatch):
-    bench = _bench()
-    root = tmp_path / "repo"
+def _copy_of_the_sources(bench, root: Path) -> Path:
+    """The diagnosis sources the protocol hashes, copied under ``root`` (to be changed there)."""
     for rel in bench.SOURCE_FILES + bench.source_globs(ROOT):
         target = root / rel
         target.parent.mkdir(parents=True, exist_ok=True)
         shutil.copy(ROOT / rel, target)
+    return root
+
+
+def test_protocol_refuses_the_evaluation_block_when_a_source_changed(tmp_path, monkeypatch):
+    bench = _bench()
+    root = _copy_of_the_sources(bench, tmp_path / "repo")
     protocol = tmp_path / "protocol.yaml"
     frozen = bench.freeze(protocol, root=root, development=[11], evaluation=[5201])
     assert frozen["blocks"]["evaluation"]["seeds"] == [5201] and len(frozen["sources"]["sha256"]) == 64
@@ -276,11 +281,7 @@ def test_protocol_blocks_run_resume_and_print_side_by_side(tmp_path, monkeypatch
 
 def test_a_refactor_is_attested_only_when_stored_outcomes_rerun_identically(tmp_path, monkeypatch):
     bench = _bench()
-    root = tmp_path / "repo"
-    for rel in bench.SOURCE_FILES + bench.source_globs(ROOT):
-        target = root / rel
-        target.parent.mkdir(parents=True, exist_ok=True)
-        shutil.copy(ROOT / rel, target)
+    root = _copy_of_the_sources(bench, tmp_path / "repo")
     protocol = tmp_path / "protocol.yaml"
     frozen = bench.freeze(protocol, root=root, development=[11], evaluation=[5201])
     frozen["selfcheck"].update(concepts=["htls"], sensors=["realistic"], kinds=["none"], none_per_set=2)
