@@ -395,6 +395,46 @@ def carriage_speeds(flags, x, th, c, t, omega_u1, omega_u2, slope1, slope2, dx):
     return omega_u1, omega_u2
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def stations(flags, x, th, c, t, omega_tp1, omega_tp2, terms, contact, p_loss1, p_loss2, r_scg, inv_cos_b1,
+             inv_cos_b2, r, dx):
+    """Both stations (:func:`station`) and the carriages' speeds (:func:`carriage_speeds`):
+    returns M_UER1, M_UER2, the two carriages' speeds in screw radians and the stations'
+    outputs for :func:`station_outputs`.
+
+    ``terms`` is the result of :func:`station_terms` for the shafts at ``omega_tp1`` and
+    ``omega_tp2``, ``contact`` that of :func:`nut_contact`; station k's losses B_TS, C_TS, B_U,
+    C_U sit in that order at ``th[p_lossk:p_lossk + 4]``, its U-joint's 1/cos β is
+    ``inv_cos_bk``; ``r_scg`` and ``r`` are the screws' constants of :func:`station`. Inlined
+    at numba IR level like :func:`transmit`: it only calls hooks, so it has no effect branch of
+    its own for numba to translate again at each call site.
+    """
+    sign_tp1, sign_tp2, cos1, cos2, f_tp1, f_tp2 = terms
+    f_er1, f_er2, slope1, slope2 = contact
+    omega_u1, m_er1, m_tser1, m_uer1 = station(flags, th, c, t, 1, omega_tp1, sign_tp1, cos1, f_tp1, f_er1,
+                                               th[p_loss1], th[p_loss1 + 1], th[p_loss1 + 2], th[p_loss1 + 3],
+                                               r_scg, inv_cos_b1, r)
+    omega_u2, m_er2, m_tser2, m_uer2 = station(flags, th, c, t, 2, omega_tp2, sign_tp2, cos2, f_tp2, f_er2,
+                                               th[p_loss2], th[p_loss2 + 1], th[p_loss2 + 2], th[p_loss2 + 3],
+                                               r_scg, inv_cos_b2, r)
+    carriage1, carriage2 = carriage_speeds(flags, x, th, c, t, omega_u1, omega_u2, slope1, slope2, dx)
+    return m_uer1, m_uer2, carriage1, carriage2, (omega_u1, omega_u2, m_er1, m_er2, m_tser1, m_tser2, m_uer1, m_uer2)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def station_outputs(y, i, values):
+    """The stations' outputs of :func:`stations` into ``y[i:i + 8]``, in the order both concepts
+    list them: Ω_U1, Ω_U2, M_ER1, M_ER2, M_TSER1, M_TSER2, M_UER1, M_UER2."""
+    y[i] = values[0]
+    y[i + 1] = values[1]
+    y[i + 2] = values[2]
+    y[i + 3] = values[3]
+    y[i + 4] = values[4]
+    y[i + 5] = values[5]
+    y[i + 6] = values[6]
+    y[i + 7] = values[7]
+
+
 @hook
 def motor_torque(flags, th, c, t, theta_m, k_n, torque):
     """The motor torque ``torque`` with the ripple torques (torque_ripple: k_n A sin(n_p θ + φ);

@@ -114,21 +114,18 @@ def evaluate(x, u, th, c, dx, y, outputs=True, flags=None):
 
     omega_tp1 = omega_l1 / i_tp1  # eq. 4
     omega_tp2 = omega_l2 / i_tp2
-    f_er1, f_er2, slope1, slope2 = ek.nut_contact(flags, x, th, c, t, u[1], u[2])
-    # the stations' shafts turn alike at equal ratios: tanh is the costliest operation of a step
-    sign_tp1, sign_tp2, cos1, cos2, f_tp1, f_tp2 = ek.station_terms(flags, th, c, t, omega_tp1, omega_tp2,
-                                                                    theta / i_tp1, theta / i_tp2, eps)
-    omega_u1, m_er1, m_tser1, m_uer1 = ek.station(
-        flags, th, c, t, 1, omega_tp1, sign_tp1, cos1, f_tp1, f_er1, th[P_B_TS1], th[P_C_TS1], th[P_B_U1],
-        th[P_C_U1], c[D_R_SCG], c[D_INV_COS_B1], c[C_R])
-    omega_u2, m_er2, m_tser2, m_uer2 = ek.station(
-        flags, th, c, t, 2, omega_tp2, sign_tp2, cos2, f_tp2, f_er2, th[P_B_TS2], th[P_C_TS2], th[P_B_U2],
-        th[P_C_U2], c[D_R_SCG], c[D_INV_COS_B2], c[C_R])
-    carriage1, carriage2 = ek.carriage_speeds(flags, x, th, c, t, omega_u1, omega_u2, slope1, slope2, dx)
     brake = u[3]
     m_b21 = brake_torque(brake, omega_tp1, c[C_M_BMAX], c[C_K_B], c[C_OMEGA_HALF], eps)
     m_b22 = brake_torque(brake, omega_tp2, c[C_M_BMAX], c[C_K_B], c[C_OMEGA_HALF], eps)
     m_b1 = brake_torque(brake, omega_m, c[C_M_BMAX], c[C_K_B], c[C_OMEGA_HALF], eps)
+    contact = ek.nut_contact(flags, x, th, c, t, u[1], u[2])  # the load forces at the screws
+    # the stations' shafts turn alike at equal ratios: tanh is the costliest operation of a step
+    terms = ek.station_terms(flags, th, c, t, omega_tp1, omega_tp2, theta / i_tp1, theta / i_tp2, eps)
+    sign_tp1, sign_tp2, _, _, f_tp1, f_tp2 = terms
+    # ball screws and U-joints (eqs. 10-15): their loads on the bevel gears, the carriages' speeds
+    m_uer1, m_uer2, carriage1, carriage2, stations = ek.stations(
+        flags, x, th, c, t, omega_tp1, omega_tp2, terms, contact, P_B_TS1, P_B_TS2, c[D_R_SCG], c[D_INV_COS_B1],
+        c[D_INV_COS_B2], c[C_R], dx)
     m_tper1 = ek.transmit(flags, e1, m_uer1 / i_tp1 + th[P_B_TP1] * omega_tp1
                           + ek.coulomb(flags, th[P_C_TP1], f_tp1) * sign_tp1 + m_b21)
     m_tper2 = ek.transmit(flags, e2, m_uer2 / i_tp2 + th[P_B_TP2] * omega_tp2
@@ -155,14 +152,7 @@ def evaluate(x, u, th, c, dx, y, outputs=True, flags=None):
         y[3] = m_n / th[P_K_N]
         y[4] = omega_tp1
         y[5] = omega_tp2
-        y[6] = omega_u1
-        y[7] = omega_u2
-        y[8] = m_er1
-        y[9] = m_er2
-        y[10] = m_tser1
-        y[11] = m_tser2
-        y[12] = m_uer1
-        y[13] = m_uer2
+        ek.station_outputs(y, 6, stations)  # y[6:14]: Omega_U1 ... M_UER2
         y[14] = m_tper1
         y[15] = m_tper2
 

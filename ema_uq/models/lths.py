@@ -127,20 +127,17 @@ def evaluate(x, u, th, c, dx, y, outputs=True, flags=None):
     omega_mg2 = omega_bg / i_bg2
     omega_tp2 = omega_mg2 / i_tp2
     theta_bg = theta / i_mg
-    f_er1, f_er2, slope1, slope2 = ek.nut_contact(flags, x, th, c, t, u[1], u[2])
-    # the stations' shafts turn alike at equal ratios: tanh is the costliest operation of a step
-    sign_tp1, sign_tp2, cos1, cos2, f_tp1, f_tp2 = ek.station_terms(
-        flags, th, c, t, omega_tp1, omega_tp2, theta_bg / i_bg1, theta_bg / i_bg2 / i_tp2, eps)
-    omega_u1, m_er1, m_tser1, m_uer1 = ek.station(
-        flags, th, c, t, 1, omega_tp1, sign_tp1, cos1, f_tp1, f_er1, th[P_B_TS1], th[P_C_TS1], th[P_B_U1],
-        th[P_C_U1], c[D_R_SCG], c[D_INV_COS_B1], c[C_R])
-    omega_u2, m_er2, m_tser2, m_uer2 = ek.station(
-        flags, th, c, t, 2, omega_tp2, sign_tp2, cos2, f_tp2, f_er2, th[P_B_TS2], th[P_C_TS2], th[P_B_U2],
-        th[P_C_U2], c[D_R_SCG], c[D_INV_COS_B2], c[C_R])
-    carriage1, carriage2 = ek.carriage_speeds(flags, x, th, c, t, omega_u1, omega_u2, slope1, slope2, dx)
     brake = u[3]
     m_b22 = brake_torque(brake, omega_tp2, c[C_M_BMAX], c[C_K_B], c[C_OMEGA_HALF], eps)
     m_b2 = brake_torque(brake, omega_tp1, c[C_M_BMAX], c[C_K_B], c[C_OMEGA_HALF], eps)
+    contact = ek.nut_contact(flags, x, th, c, t, u[1], u[2])  # the load forces at the screws
+    # the stations' shafts turn alike at equal ratios: tanh is the costliest operation of a step
+    terms = ek.station_terms(flags, th, c, t, omega_tp1, omega_tp2, theta_bg / i_bg1, theta_bg / i_bg2 / i_tp2, eps)
+    sign_tp1, sign_tp2, _, _, f_tp1, f_tp2 = terms
+    # ball screws and U-joints (eqs. 27-29, as in HT/LS): their loads on the bevel gears, the carriages' speeds
+    m_uer1, m_uer2, carriage1, carriage2, stations = ek.stations(
+        flags, x, th, c, t, omega_tp1, omega_tp2, terms, contact, P_B_TS1, P_B_TS2, c[D_R_SCG], c[D_INV_COS_B1],
+        c[D_INV_COS_B2], c[C_R], dx)
     m_mg2 = m_uer2 / i_tp2 + th[P_B_TP2] * omega_tp2 + ek.coulomb(flags, th[P_C_TP2], f_tp2) * sign_tp2 + m_b22
     m_tper = ek.transmit(flags, e, m_uer1 / i_bg1 + m_mg2 / i_bg2 + th[P_B_TP1] * omega_tp1
                          + ek.coulomb(flags, th[P_C_TP1], f_tp1) * sign_tp1 + m_b2)
@@ -173,14 +170,7 @@ def evaluate(x, u, th, c, dx, y, outputs=True, flags=None):
         y[6] = omega_tp1
         y[7] = omega_mg2
         y[8] = omega_tp2
-        y[9] = omega_u1
-        y[10] = omega_u2
-        y[11] = m_er1
-        y[12] = m_er2
-        y[13] = m_tser1
-        y[14] = m_tser2
-        y[15] = m_uer1
-        y[16] = m_uer2
+        ek.station_outputs(y, 9, stations)  # y[9:17]: Omega_U1 ... M_UER2
         y[17] = m_mg2
         y[18] = m_tper
         y[19] = m_mger

@@ -327,12 +327,11 @@ def _dopri_batch_flags(model_id, flags, thetas, consts, inputs, x0, dt, rtol, sc
                    out[s], np.empty(0), np.empty(0, dtype=np.int64))
 
 
-@njit(cache=True, parallel=True, error_model="numpy")
-def _dopri_batch_shared_flags(model_id, flags, thetas, consts, inputs, x0, dt, rtol, scales, props, h_stable, out,
-                              steps, counts):
-    """``_dopri_batch_flags`` where set 0 chooses the steps and every other set replays them:
-    finite-difference sensitivities free of the step-selection noise of independent adaptive
-    runs. Returns False (nothing else done) when ``steps`` is too short for set 0's sequence."""
+@njit(cache=True, inline="always", error_model="numpy")
+def _dopri_shared(model_id, flags, thetas, consts, inputs, x0, dt, rtol, scales, props, h_stable, out, steps, counts):
+    """The body of ``_dopri_batch_shared_flags`` and of its nominal entry, inlined into both (at
+    numba IR level, its prange loop included): set 0 chooses the steps, every other set replays
+    them."""
     n_accepted, _ = _dopri_one(model_id, flags, thetas[0], consts, inputs, x0, dt, rtol, scales[0], props[0],
                                h_stable[0], out[0], steps, counts)
     if n_accepted == DP_DIVERGED:  # no step sequence to follow: differences around it are undefined
@@ -347,8 +346,19 @@ def _dopri_batch_shared_flags(model_id, flags, thetas, consts, inputs, x0, dt, r
     return True
 
 
+@njit(cache=True, parallel=True, error_model="numpy")
+def _dopri_batch_shared_flags(model_id, flags, thetas, consts, inputs, x0, dt, rtol, scales, props, h_stable, out,
+                              steps, counts):
+    """``_dopri_batch_flags`` where set 0 chooses the steps and every other set replays them:
+    finite-difference sensitivities free of the step-selection noise of independent adaptive
+    runs. Returns False (nothing else done) when ``steps`` is too short for set 0's sequence."""
+    return _dopri_shared(model_id, flags, thetas, consts, inputs, x0, dt, rtol, scales, props, h_stable, out, steps,
+                         counts)
+
+
 # the nominal entries: the same calls with the literal NOMINAL (a nominal entry calling the one
-# taking flags would put one more layer of LLVM optimisation over the whole kernel)
+# taking flags would put one more layer of LLVM optimisation over the whole kernel; a body both
+# share, such as _dopri_shared, is inlined at numba IR level, which adds no such layer)
 @njit(cache=True, parallel=True, error_model="numpy")
 def _integrate_batch(model_id, thetas, consts, inputs, x0, h, n_sub, out):
     """``_integrate_batch_flags`` of a nominal model."""
@@ -367,18 +377,8 @@ def _dopri_batch(model_id, thetas, consts, inputs, x0, dt, rtol, scales, props, 
 @njit(cache=True, parallel=True, error_model="numpy")
 def _dopri_batch_shared(model_id, thetas, consts, inputs, x0, dt, rtol, scales, props, h_stable, out, steps, counts):
     """``_dopri_batch_shared_flags`` of a nominal model."""
-    n_accepted, _ = _dopri_one(model_id, NOMINAL, thetas[0], consts, inputs, x0, dt, rtol, scales[0], props[0],
-                               h_stable[0], out[0], steps, counts)
-    if n_accepted == DP_DIVERGED:
-        for s in range(1, out.shape[0]):
-            _fill_nan(out[s], 0)
-        return True
-    if n_accepted < 0:
-        return False
-    for s in prange(1, thetas.shape[0]):
-        _dopri_replay_one(model_id, NOMINAL, thetas[s], consts, inputs, x0, scales[s], props[s], steps, counts,
-                          out[s])
-    return True
+    return _dopri_shared(model_id, NOMINAL, thetas, consts, inputs, x0, dt, rtol, scales, props, h_stable, out, steps,
+                         counts)
 
 
 @njit(cache=True, error_model="numpy")

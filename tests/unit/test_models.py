@@ -88,6 +88,9 @@ def test_nominal_values_and_layout_match_spec(concept, params, consts):
     assert set(model.constants.names) == set(consts)
     for name, value in consts.items():
         assert model.constants[name].nominal == pytest.approx(value, rel=1e-15, abs=0), name
+    for k in (1, 2):  # effect_kernels.stations reads station k's losses from the position of B_TSk on
+        first = model.parameters.index(f"B_TS{k}")
+        assert [model.parameters.index(f"{n}{k}") for n in ("C_TS", "B_U", "C_U")] == [first + 1, first + 2, first + 3]
 
 
 # --- HT/LS at hand-computed states ------------------------------------------------------
