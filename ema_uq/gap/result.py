@@ -139,6 +139,8 @@ class GapResult:
     further_rounds: list[list[CandidateScore]] = field(default_factory=list)
     family: str | None = None
     open_set: dict[str, Any] = field(default_factory=dict)
+    #: the model-form allowance fitted in every model (:mod:`ema_uq.gap.allowance`), None when off
+    model_form_allowance: dict[str, Any] | None = None
 
     def __post_init__(self) -> None:
         if self.family is None and self.effect is not None:
@@ -276,6 +278,7 @@ class GapResult:
             # the open-set verdict: family probabilities, contenders of an ambiguous verdict, and the
             # cells where the best candidate leaves structure
             **{k: self.open_set.get(k) for k in OPEN_SET_KEYS if k in self.open_set},
+            **({} if self.model_form_allowance is None else {"model_form_allowance": self.model_form_allowance}),
         })
 
     @classmethod
@@ -303,6 +306,7 @@ class GapResult:
             further_rounds=[[_candidate_from_json(c) for c in rnd] for rnd in data.get("further_rounds", [])],
             family=data.get("family"),
             open_set={k: data[k] for k in OPEN_SET_KEYS if k in data},
+            model_form_allowance=data.get("model_form_allowance"),
         )
 
 
