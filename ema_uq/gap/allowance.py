@@ -105,10 +105,16 @@ def command_lag(values: np.ndarray, tau: float, dt: float) -> np.ndarray:
     """``values`` (n,) through a first-order lag of time constant ``tau`` [s], exact for an
     input linear between samples, started at rest on the first value:
     y_k = a y_(k-1) + b0 u_k + b1 u_(k-1), a = exp(-dt/tau), b0 = 1 - (tau/dt)(1 - a),
-    b1 = (tau/dt)(1 - a) - a (unit static gain; tau -> 0 tends to a delay of tau)."""
+    b1 = (tau/dt)(1 - a) - a (unit static gain; tau -> 0 tends to a delay of tau). A negative
+    tau (finite differences at the bound) is a lead of |tau| by linear interpolation."""
     values = np.asarray(values, dtype=float)
     if tau == 0.0 or values.size < 2:
         return values.copy()
+    if tau < 0.0:
+        # below the bound (a central finite difference at tau = 0): the continuation of the small-tau
+        # limit, a lead of |tau| by linear interpolation, capped at one sample
+        f = min(-tau / dt, 1.0)
+        return np.concatenate([values[:-1] + f * np.diff(values), values[-1:]])
     from scipy.signal import lfilter
 
     a = math.exp(-dt / tau)
