@@ -8,6 +8,12 @@ The figures below are those of the default strategy (the synthetic actuator conc
 grid, measures the gap as the benchmark's validation force error, ranks by ΔBIC alone and runs
 two forward-selection rounds.
 
+Method version 2 fits a *model-form allowance* (:mod:`ema_uq.gap.allowance`: relative offsets
+of the kinematic design constants within their tolerance and a first-order lag of the position
+command) in the nominal model and in every candidate alike: the root model of every step below
+carries its parameters (free in every fit, never a candidate, cancelling in every comparison).
+``DiagnosisSettings.model_form_allowance`` False gives method version 1.
+
 Procedure (``diagnose``):
 
 1. Held-out data: the ``validation`` measurements when given; otherwise the last

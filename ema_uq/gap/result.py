@@ -199,6 +199,7 @@ class GapResult:
                  f"; plain NRMSE {self.gap['nrmse_before']:.4g} -> {self.gap['nrmse_after']:.4g}",
                  *self._shrink_line(),
                  *self._open_set_lines(),
+                 *self._allowance_lines(),
                  f"    wall time          = {self.wall_time_s:.1f} s, {self.n_simulations} simulations",
                  "[[Ranking]] (gaps and shrink on the scoring part, the held-out gain on the selection part)",
                  f"    {'effect':<24} {'family':<18} {'score':>10} {'dBIC':>10} {'held-out':>10} {'sig':>5} "
@@ -219,6 +220,15 @@ class GapResult:
             for name, p in self.effect_parameters.items():
                 lines.append(f"    {name:<24} = {p['estimate']:.6g} +/- {p['std']:.3g} {p.get('unit', '')}")
         return "\n".join(lines)
+
+    def _allowance_lines(self) -> list[str]:
+        """The model-form allowance fitted in the nominal model (relative offsets in %, the lag in ms)."""
+        fitted = (self.model_form_allowance or {}).get("fitted_nominal") or {}
+        if not fitted:
+            return []
+        shown = [f"{n[3:]} {p['estimate'] * 1e3:.0f} ms" if p["unit"] == "s" else f"{n[3:]} {p['estimate']:+.2%}"
+                 for n, p in fitted.items()]
+        return [f"    model-form allow.  = {', '.join(shown)} (nominal fit; in every model, never named)"]
 
     def _open_set_lines(self) -> list[str]:
         """Family probabilities, and what the best candidate leaves where (open-set verdict)."""
