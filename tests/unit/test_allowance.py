@@ -129,3 +129,20 @@ def test_allowance_off_reproduces_method_version_1():
            **{c.effect: c.delta_bic for c in r.ranking}}
     assert r.verdict == "none"
     assert got == pytest.approx(V1_NONE, rel=1e-9)
+
+
+def test_the_frozen_version_1_protocol_runs_without_the_allowance(tmp_path):
+    import importlib.util
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    spec = importlib.util.spec_from_file_location("gap_bench", root / "benchmarks" / "gap.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    v1 = bench.load_protocol(root / "benchmarks" / "gap_protocol.yaml")
+    assert "model_form_allowance" not in v1["settings"]
+    assert bench.protocol_settings(v1) == DiagnosisSettings(model_form_allowance=False)
+    # a protocol frozen now records the setting, and runs with it
+    frozen = bench.freeze(tmp_path / "protocol.yaml", development=[11], evaluation=[5201])
+    assert frozen["settings"]["model_form_allowance"] is True
+    assert bench.protocol_settings(frozen).model_form_allowance is True
