@@ -117,7 +117,8 @@ def test_the_allowance_is_off_for_fault_diagnosis_and_when_switched_off():
 
 
 # method version 1 (frozen protocol): figures of this diagnosis before the allowance existed
-V1_NONE = {}
+V1_NONE = {"log_det_R": -57.633276480450995, "before": 0.0, "after": 0.0,
+           "load_dependent_friction": -6.607029931321894, "sensor_delay": -7.8150975017565445}
 
 
 def test_allowance_off_reproduces_method_version_1():
