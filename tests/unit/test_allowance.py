@@ -147,3 +147,18 @@ def test_the_frozen_version_1_protocol_runs_without_the_allowance(tmp_path):
     frozen = bench.freeze(tmp_path / "protocol.yaml", development=[11], evaluation=[5201])
     assert frozen["settings"]["model_form_allowance"] is True
     assert bench.protocol_settings(frozen).model_form_allowance is True
+
+
+def test_an_unrecorded_command_filter_is_no_sensor_delay_with_the_allowance():
+    from ema_uq.gap.variants import make_records
+
+    est, val, val2, _ = make_records("htls", None, None, seed=7, channels="realistic", base_perturbation=0.10,
+                                     stress={"input_filter": 0.035})
+    runs = {on: diagnose([est], [val, val2], candidates=("sensor_delay", "load_dependent_friction"), seed=7,
+                         settings=replace(DEFAULT_STRATEGY.settings, model_form_allowance=on))
+            for on in (False, True)}
+    assert runs[False].verdict == "effect" and runs[False].effect == "sensor_delay"      # version 1's false alarm
+    assert runs[True].verdict in ("none", "unexplained") and runs[True].effect is None
+    lag = runs[True].model_form_allowance["fitted_nominal"][LAG_NAME]["estimate"]
+    assert 0.02 < lag < 0.04       # the filter's 35 ms, less about half a sample (it acts one sample late)
+    assert runs[True].gap["before"] < 0.5 * runs[False].gap["before"]
