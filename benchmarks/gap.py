@@ -35,11 +35,13 @@ without changing a number (a module split) is attested instead with ``--attest-e
 N outcomes of the evaluation block already computed on the frozen sources are re-run on the
 current ones, and only if every stored value comes out identical is the current hash recorded
 under ``sources.equivalent`` (with the cases re-run), after which the block continues into the
-same outcome folder; any differing value refuses the attestation.
+same outcome folder; any differing value refuses the attestation. The diagnosis settings come
+from the protocol's ``settings``; a protocol frozen before the model-form allowance (method
+version 1, no ``model_form_allowance`` there) runs without it.
 
 Usage: python benchmarks/gap.py [--concept htls|lths|both] [--sensors full realistic] [--jobs N]
                                 [--quick] [--none-per-set N] [--kinds ...] [--none-from K] [--seed N]
-                                [--peer] [--out JSON]
+                                [--peer] [--out JSON] [--method-version 1|2]
        python benchmarks/gap.py --protocol benchmarks/gap_protocol.yaml --block development|evaluation
                                 [--jobs N] [--chunk I/N] [--results DIR]
        python benchmarks/gap.py --protocol benchmarks/gap_protocol.yaml --freeze [--new-evaluation]
@@ -293,7 +295,7 @@ def attest_equivalent(path, n_cases: int, *, block: str = "evaluation", out_dir:
     for file in picked:
         stored = json.loads(file.read_text(encoding="utf-8"))
         outcome = CaseOutcome.from_json(stored)
-        fresh = run_case(outcome.case).to_json()
+        fresh = run_case(outcome.case, protocol_settings(protocol)).to_json()
         differences = _differences(stored, fresh)
         print(f"{outcome.case.case_id}: {'identical' if not differences else 'DIFFERS at ' + ', '.join(differences[:5])}",
               flush=True)
@@ -318,6 +320,16 @@ def _count_values(value) -> int:
     return 1
 
 
+def protocol_settings(protocol: dict) -> DiagnosisSettings:
+    """The diagnosis settings a protocol froze (its ``settings``). A protocol frozen before the
+    model-form allowance existed (method version 1: no ``model_form_allowance`` in its settings)
+    runs without it, so that its blocks go on with the method they were frozen for."""
+    known = {f.name for f in dataclasses.fields(DiagnosisSettings)}
+    frozen = {k: v for k, v in dict(protocol.get("settings") or {}).items() if k in known}
+    frozen.setdefault("model_form_allowance", False)
+    return DiagnosisSettings(**frozen)
+
+
 def run_block(protocol: dict, block: str, out_dir: Path, jobs: int = 1, chunk: str | None = None,
               root: Path = ROOT) -> SelfCheckResult | None:
     """Every seed of the block, one outcome file per case under
@@ -326,6 +338,7 @@ def run_block(protocol: dict, block: str, out_dir: Path, jobs: int = 1, chunk: s
     Without ``chunk``: the outcomes of all seeds in one result, written to ``<block>.json``.
     ``chunk`` "I/N": only the I-th part of every seed's cases (a scattered job), no result."""
     settings = protocol["selfcheck"]
+    diagnosis_settings = protocol_settings(protocol)
     seeds = protocol["blocks"][block]["seeds"]
     current = hash_sources(root)[0]
     if current in accepted_hashes(protocol):
@@ -334,6 +347,7 @@ def run_block(protocol: dict, block: str, out_dir: Path, jobs: int = 1, chunk: s
     for seed in seeds:
         part = self_check(seed=int(seed), concepts=settings["concepts"], sensors=settings["sensors"],
                           kinds=settings["kinds"], none_per_set=int(settings["none_per_set"]), jobs=jobs,
+                          settings=diagnosis_settings,
                           cache=Path(out_dir) / block / current[:12] / f"seed{seed}", chunk=chunk,
                           progress=lambda line, s=seed: print(f"seed {s} {line}", flush=True))
         outcomes += part.outcomes
@@ -344,6 +358,7 @@ def run_block(protocol: dict, block: str, out_dir: Path, jobs: int = 1, chunk: s
         return None
     result = SelfCheckResult(outcomes, int(seeds[0]), False, wall,
                              {**used, "seeds": list(seeds), "block": block, "sources_sha256": current,
+                              "model_form_allowance": diagnosis_settings.model_form_allowance,
                               "protocol_sha256": protocol["sources"]["sha256"]})
     Path(out_dir).mkdir(parents=True, exist_ok=True)
     with open(Path(out_dir) / f"{block}.json", "w", encoding="utf-8") as fh:
@@ -439,12 +454,16 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=DEFAULT_SEED)
     parser.add_argument("--peer", action="store_true", help="also run the former circular self-check")
     parser.add_argument("--out", metavar="JSON", help="write scores and per-case table as JSON")
+    parser.add_argument("--method-version", type=int, choices=(1, 2), default=2,
+                        help="2 (default): fit the model-form allowance (kinematic tolerance, command lag) in every "
+                             "model; 1: the method without it")
     args = parser.parse_args()
 
     concepts = ["htls", "lths"] if args.concept == "both" else [args.concept]
     load = os.getloadavg()[0]
     result = self_check(seed=args.seed, quick=args.quick, concepts=concepts, sensors=args.sensors,
                         none_per_set=args.none_per_set, kinds=args.kinds, none_first=args.none_from, jobs=args.jobs,
+                        settings=DiagnosisSettings(model_form_allowance=args.method_version == 2),
                         progress=lambda line: print(line, flush=True))
     print()
     print(result.summary())

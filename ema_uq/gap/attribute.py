@@ -8,6 +8,12 @@ The figures below are those of the default strategy (the synthetic actuator conc
 grid, measures the gap as the benchmark's validation force error, ranks by ΔBIC alone and runs
 two forward-selection rounds.
 
+Method version 2 fits a *model-form allowance* (:mod:`ema_uq.gap.allowance`: relative offsets
+of the kinematic design constants within their tolerance and a first-order lag of the position
+command) in the nominal model and in every candidate alike: the root model of every step below
+carries its parameters (free in every fit, never a candidate, cancelling in every comparison).
+``DiagnosisSettings.model_form_allowance`` False gives method version 1.
+
 Procedure (``diagnose``):
 
 1. Held-out data: the ``validation`` measurements when given; otherwise the last
@@ -130,6 +136,7 @@ import numpy as np
 
 from ..experiments import Measurement
 from ..models import get_model
+from .allowance import allowance_values
 from .candidates import _after_model, _catalogue, _family, _fit_nominal, _forward_selection
 from .diagnosis_state import _Diagnosis
 from .fitting import _effect_parameter_names, _parameter_table
@@ -299,8 +306,15 @@ def diagnose(
             raise GapError(f"unknown candidate effect(s) {', '.join(unknown)} for concept {concept}; "
                            f"choose from {', '.join(catalogue)}")
         catalogue = {c: catalogue[c] for c in candidates}
-    run = _Diagnosis(strategy, settings, _split(measurements, validation, strategy, settings), base, catalogue,
-                     progress or (lambda _line: None), seed=seed)
+    # method version 2: the model-form allowance (kinematic tolerance, command lag) is fitted in the
+    # nominal model and in every candidate alike; the root model carries its parameters
+    allowance = strategy.allowance_for(base, settings)
+    root = base if allowance is None else allowance.wrap(base)
+    run = _Diagnosis(strategy, settings, _split(measurements, validation, strategy, settings), root, catalogue,
+                     progress or (lambda _line: None), seed=seed, allowance=allowance)
+    if allowance is not None:
+        run.say(f"model-form allowance: {', '.join(allowance.constants)} within +-{allowance.tolerance:.0%}, "
+                f"command lag up to {allowance.lag_max * 1e3:.0f} ms")
     nominal, loc_est, loc_held = _fit_nominal(run)
     # where the gap shows most clearly: a gap in extrapolation shows on held-out data only
     if strategy.where_source == "held-out" or loc_held.z > loc_est.z:
@@ -322,7 +336,7 @@ def diagnose(
                                       held=True)
         run.n_sims += len(run.data.estimation) + len(run.data.held)
         after_figures["all"] = run.held_out_figures(model, held_records)
-        effect_parameters = _parameter_table(model, fit, _effect_parameter_names(model, base))
+        effect_parameters = _parameter_table(model, fit, _effect_parameter_names(model, root))
     ranking = rounds[0] if rounds else []
     before = nominal.figures
     probabilities = family_probabilities(ranking, strategy.thresholds, tempering)
@@ -358,4 +372,15 @@ def diagnose(
         effect_parameters=effect_parameters, thresholds=_thresholds_json(strategy),
         wall_time_s=time.perf_counter() - t0, n_simulations=run.n_sims, seed=seed,
         selected=list(selected), further_rounds=rounds[1:], open_set=open_set,
+        model_form_allowance=None if allowance is None else _allowance_json(allowance, nominal.fit, root, after),
     )
+
+
+def _allowance_json(allowance, nominal_fit, root, after) -> dict[str, Any]:
+    """GAP.json ``model_form_allowance``: its definition and the fitted values (with their
+    Cramér-Rao std) in the nominal model and in the model after."""
+    out = {**allowance.to_json(), "fitted_nominal": allowance_values(root, nominal_fit.estimate, nominal_fit.std)}
+    if after is not None:
+        model, fit = after
+        out["fitted_after"] = allowance_values(model, fit.estimate, fit.std)
+    return out

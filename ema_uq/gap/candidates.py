@@ -103,10 +103,14 @@ def _screened_fit(run: _Diagnosis, problem: FitProblem, augmented, names: Sequen
         cap = settings.candidate_max_iterations
         count = settings.screen_base_parameters
         if count is not None and count < len(base.parameters) and not run.strategy.hold_base:
-            keep = [n for n in _relevant_base(problem, start, start_prediction, names, count + len(fixed))
-                    if n not in fixed][:count]
+            # the model-form allowance is free in every refit, beside the most aliased base parameters
+            allowed = [] if run.allowance is None else [n for n in run.allowance.names if n not in fixed]
+            keep = [n for n in _relevant_base(problem, start, start_prediction, names,
+                                              count + len(fixed) + len(allowed))
+                    if n not in fixed and n not in allowed][:count]
             n_extra += problem.free_index.size
-            fit_problem = FitProblem(model=augmented, parameters=augmented.parameters.freeing_only(keep + names),
+            fit_problem = FitProblem(model=augmented,
+                                     parameters=augmented.parameters.freeing_only(keep + allowed + names),
                                      **run.problem_args)
     fit = _robust_estimate(fit_problem, start, Settings(tolerance=settings.tolerance, max_iterations=cap))
     fit.n_simulations += n_extra
@@ -139,7 +143,8 @@ def _fit_nominal(run: _Diagnosis):
         run.problem_args["constants"] = strategy.constants(d.estimation[0])
     reference = {k: v for k, v in (strategy.reference_fit or {}).items() if k in base.parameters}
     start = base.parameters.vector(reference)
-    problem = FitProblem(**run.problem_args)
+    # the root model: the concept's own, or it with the model-form allowance's parameters appended
+    problem = FitProblem(**run.problem_args) if run.allowance is None else FitProblem(model=base, **run.problem_args)
     run.n_samples = problem.n_samples
     if strategy.hold_base:
         run.fixed = list(base.parameters.names)
@@ -149,7 +154,9 @@ def _fit_nominal(run: _Diagnosis):
         run.fixed = _unidentifiable_parameters(problem, start)
         run.n_sims += problem.free_index.size + 1
         if run.fixed:
-            problem = FitProblem(parameters=base.parameters.fixing(run.fixed), **run.problem_args)
+            problem = (FitProblem(parameters=base.parameters.fixing(run.fixed), **run.problem_args)
+                       if run.allowance is None else
+                       FitProblem(model=base, parameters=base.parameters.fixing(run.fixed), **run.problem_args))
         run.say(f"nominal ML fit of {base.name} on {problem.n_samples} samples x {len(d.channels)} channels"
                 + (f" ({', '.join(run.fixed)} held at nominal: these channels cannot determine them)"
                    if run.fixed else ""))

@@ -59,6 +59,7 @@ class _Diagnosis:
     masks: dict[str, list[np.ndarray]] | None = None   # cell masks of the selection part (nominal outputs)
     healthy_cells: dict[str, Any] | None = None         # cells of the reference on the strategy's healthy records
     predictable: Any = None                             # what the state predicts of the nominal's held-out gap
+    allowance: Any = None                               # the model-form allowance fitted in every model (or None)
     resamples: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:

@@ -139,6 +139,8 @@ class GapResult:
     further_rounds: list[list[CandidateScore]] = field(default_factory=list)
     family: str | None = None
     open_set: dict[str, Any] = field(default_factory=dict)
+    #: the model-form allowance fitted in every model (:mod:`ema_uq.gap.allowance`), None when off
+    model_form_allowance: dict[str, Any] | None = None
 
     def __post_init__(self) -> None:
         if self.family is None and self.effect is not None:
@@ -197,6 +199,7 @@ class GapResult:
                  f"; plain NRMSE {self.gap['nrmse_before']:.4g} -> {self.gap['nrmse_after']:.4g}",
                  *self._shrink_line(),
                  *self._open_set_lines(),
+                 *self._allowance_lines(),
                  f"    wall time          = {self.wall_time_s:.1f} s, {self.n_simulations} simulations",
                  "[[Ranking]] (gaps and shrink on the scoring part, the held-out gain on the selection part)",
                  f"    {'effect':<24} {'family':<18} {'score':>10} {'dBIC':>10} {'held-out':>10} {'sig':>5} "
@@ -217,6 +220,15 @@ class GapResult:
             for name, p in self.effect_parameters.items():
                 lines.append(f"    {name:<24} = {p['estimate']:.6g} +/- {p['std']:.3g} {p.get('unit', '')}")
         return "\n".join(lines)
+
+    def _allowance_lines(self) -> list[str]:
+        """The model-form allowance fitted in the nominal model (relative offsets in %, the lag in ms)."""
+        fitted = (self.model_form_allowance or {}).get("fitted_nominal") or {}
+        if not fitted:
+            return []
+        shown = [f"{n[3:]} {p['estimate'] * 1e3:.0f} ms" if p["unit"] == "s" else f"{n[3:]} {p['estimate']:+.2%}"
+                 for n, p in fitted.items()]
+        return [f"    model-form allow.  = {', '.join(shown)} (nominal fit; in every model, never named)"]
 
     def _open_set_lines(self) -> list[str]:
         """Family probabilities, and what the best candidate leaves where (open-set verdict)."""
@@ -276,6 +288,7 @@ class GapResult:
             # the open-set verdict: family probabilities, contenders of an ambiguous verdict, and the
             # cells where the best candidate leaves structure
             **{k: self.open_set.get(k) for k in OPEN_SET_KEYS if k in self.open_set},
+            **({} if self.model_form_allowance is None else {"model_form_allowance": self.model_form_allowance}),
         })
 
     @classmethod
@@ -303,6 +316,7 @@ class GapResult:
             further_rounds=[[_candidate_from_json(c) for c in rnd] for rnd in data.get("further_rounds", [])],
             family=data.get("family"),
             open_set={k: data[k] for k in OPEN_SET_KEYS if k in data},
+            model_form_allowance=data.get("model_form_allowance"),
         )
 
 

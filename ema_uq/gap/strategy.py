@@ -22,6 +22,7 @@ import numpy as np
 
 from ..experiments import Measurement
 from ..statistics import START_MULTIPLES
+from .allowance import AllowanceError, ModelFormAllowance, actuator_allowance
 from .localize import ResidualRecord, localize, nrmse_of_products, systematic_products
 from .structure import StructureSettings
 from .verdict import Thresholds
@@ -37,7 +38,11 @@ class DiagnosisSettings:
     the effect's in that first refit (the most aliased; None: every parameter free, and no
     second refit); ``final_candidates``/``final_max_iterations``: leaders refitted with every
     parameter free, and its cap; ``max_effects``: forward-selection rounds (an effect kept in
-    one round joins the model the next round's candidates are added to).
+    one round joins the model the next round's candidates are added to);
+    ``model_form_allowance``: fit the strategy's model-form allowance (kinematic tolerance and
+    command lag, :mod:`ema_uq.gap.allowance`) in the nominal model and in every candidate alike
+    (method version 2, the default; False reproduces method version 1, which treats the
+    kinematics and the command as exact).
     """
 
     holdout_fraction: float = 0.3
@@ -48,6 +53,11 @@ class DiagnosisSettings:
     final_max_iterations: int = 15
     tolerance: float = 1e-5
     max_effects: int = 1
+    model_form_allowance: bool = True
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.model_form_allowance, (bool, np.bool_)):
+            raise AllowanceError(f"model_form_allowance must be true or false, got {self.model_form_allowance!r}")
 
 
 class GapMetric(Protocol):
@@ -134,6 +144,13 @@ class DiagnosisStrategy:
         did not see. The reference model's residual on them is the *healthy level* of every cell of
         the cell test (per sample): structure the healthy rig leaves too is not the fault's, and no
         candidate is asked to close it. Empty: the healthy level is white noise.
+    model_form : ``model -> ModelFormAllowance | None``, the concept's model-form allowance
+        (:mod:`ema_uq.gap.allowance`: relative offsets of the kinematic design constants within
+        their tolerance, a first-order lag of the position command), fitted in every model when
+        ``settings.model_form_allowance`` is on and the base parameters are fitted (not with
+        ``hold_base``: a reference fit on healthy data already holds the rig's model form).
+        None: the concept has none (EMPS, Cranfield). The default strategy of the actuator
+        concepts uses :func:`ema_uq.gap.allowance.actuator_allowance`.
     """
 
     name: str = "default"
@@ -150,6 +167,7 @@ class DiagnosisStrategy:
     replicate_prediction: Callable[..., list[np.ndarray] | None] | None = None
     structure: StructureSettings = StructureSettings()
     healthy_records: tuple[Measurement, ...] = ()
+    model_form: Callable[[Any], ModelFormAllowance | None] | None = None
 
     def __post_init__(self) -> None:
         if self.where_source not in ("larger z", "held-out"):
@@ -164,8 +182,18 @@ class DiagnosisStrategy:
     def constants_of(self, measurement: Measurement) -> np.ndarray | None:
         return None if self.constants is None else self.constants(measurement)
 
+    def allowance_for(self, model, settings: DiagnosisSettings) -> ModelFormAllowance | None:
+        """The model-form allowance a diagnosis of ``model`` with ``settings`` fits (None: none)."""
+        if not settings.model_form_allowance or self.model_form is None or self.hold_base:
+            return None
+        allowance = self.model_form(model)
+        if allowance is not None and not isinstance(allowance, ModelFormAllowance):
+            raise AllowanceError(f"strategy {self.name}: model_form returned {type(allowance).__name__}, "
+                                 "not a ModelFormAllowance")
+        return allowance
 
-DEFAULT_STRATEGY = DiagnosisStrategy()
+
+DEFAULT_STRATEGY = DiagnosisStrategy(model_form=actuator_allowance)
 
 #: concept -> strategy, or "module:attribute" imported on first use
 _REGISTRY: dict[str, DiagnosisStrategy | str] = {"emps": "ema_uq.rigs.emps:EMPS_STRATEGY",

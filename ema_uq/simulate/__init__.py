@@ -91,7 +91,8 @@ def simulate_batch(
 
     Parameters
     ----------
-    model : concept or its name.
+    model : concept or its name. A model with a ``simulate_own`` method (the gap diagnosis's
+        model-form allowance, :class:`ema_uq.gap.allowance.AllowedModel`) is simulated by it.
     thetas : (n_sets, n_params) or (n_params,) full parameter vectors in ``model.parameters`` order.
     time : (n_samples,) uniform sample times [s].
     inputs : (n_samples, 4) held inputs in ``model.inputs`` order (phi_r [rad], F_ER1 [N], F_ER2 [N], brake).
@@ -114,6 +115,10 @@ def simulate_batch(
     ((n_samples, n_outputs) when ``thetas`` is one vector).
     """
     model = get_model(model) if isinstance(model, str) else model
+    own = getattr(model, "simulate_own", None)
+    if own is not None:  # a wrapper that turns parameters of its own into constants and inputs
+        return own(thetas, time, inputs, constants=constants, x0=x0, step=step, integrator=integrator, rtol=rtol,
+                   share_steps=share_steps)
     thetas = np.asarray(thetas, dtype=np.float64)
     single = thetas.ndim == 1
     thetas = np.ascontiguousarray(np.atleast_2d(thetas))
