@@ -56,6 +56,9 @@ import numpy as np
 from ..errors import EmaUqError
 from ..models.base import Model
 from ..params import Parameter, ParameterSet
+from ..simulate import simulate_batch
+from ..simulate.dispatch import SimulationError, kernel_family
+from ..simulate.linear import linear_state_matrices
 
 #: relative tolerance of a kinematic design constant (the bound of its offset)
 KINEMATIC_TOLERANCE = 0.05
@@ -87,15 +90,12 @@ def kinematic_constants(model: Model) -> tuple[str, ...]:
 def position_loop_time_constant(model: Model) -> float | None:
     """1 / |slowest non-zero closed-loop mode| of the concept's linear regime at its nominal
     parameters and constants (the position loop); None for a concept without a linear regime."""
-    import importlib
-
     try:
-        module = importlib.import_module(f"ema_uq.models.{model.name}")
-        matrix = module.linear_state_matrix
-    except (ImportError, AttributeError):
+        family = kernel_family(model)
+    except SimulationError:  # a concept with a simulator of its own (EMPS, Cranfield) declares none
         return None
-    a = np.zeros((model.n_states, model.n_states))
-    matrix(np.asarray(model.parameters.nominal, dtype=float), model.kernel_constants(), a)
+    base = model if family == "nominal" else model.base_model
+    a = linear_state_matrices(base, base.parameters.nominal)[0]
     rates = np.abs(np.linalg.eigvals(a).real)
     rates = rates[rates > 1e-9 * max(float(np.max(rates)), 1e-300)]
     return None if rates.size == 0 else float(1.0 / np.min(rates))
@@ -210,8 +210,6 @@ class AllowedModel(Model):
         """Outputs (n_sets, n_samples, n_outputs) of full parameter vectors of this model: the
         wrapped model run once per distinct set of allowance values (first-appearance order, so
         that the first set still leads a ``share_steps`` batch of its own group)."""
-        from ..simulate import SimulationError, simulate_batch
-
         thetas = np.asarray(thetas, dtype=np.float64)
         single = thetas.ndim == 1
         thetas = np.atleast_2d(thetas)

@@ -225,11 +225,17 @@ def stable_steps(model: Model, thetas: np.ndarray, constants: np.ndarray | None 
     taken here, in numpy, rather than inside the parallel kernel, where LAPACK's own threads
     would contend with the kernel's.
     """
+    return _stable_steps_of(linear_state_matrices(model, thetas, constants))
+
+
+def linear_state_matrices(model: Model, thetas: np.ndarray, constants: np.ndarray | None = None) -> np.ndarray:
+    """(n_sets, n_states, n_states) state matrices ∂f/∂x of a nominal concept's linear regime,
+    one per parameter set (design ``constants`` default to the model's)."""
     if kernel_family(model) != "nominal":
-        raise SimulationError(f"{model.title} declares no linear regime; stable steps cover the nominal concepts")
+        raise SimulationError(f"{model.title} declares no linear regime; it is known for the nominal concepts")
     consts = model.constants_vector() if constants is None else constants
-    return _stable_steps_of(_linear_state_matrices(model.model_id, np.atleast_2d(thetas),
-                                                   model.kernel_constants(consts), model.n_states))
+    return _linear_state_matrices(model.model_id, np.atleast_2d(np.asarray(thetas, dtype=np.float64)),
+                                  model.kernel_constants(consts), model.n_states)
 
 
 def _hybrid_setup(model: Model, thetas: np.ndarray, kernel_consts: np.ndarray, dt: float, hybrid: bool):
