@@ -84,12 +84,14 @@ def compiled_kernels_cached(module_file: str | Path) -> bool:
     """Whether numba's on-disk cache holds kernels of ``module_file`` at least as new as its
     source. Numba keeps no public query for this; its cache index files sit in the module's
     ``__pycache__`` as ``<module>.<function>-<line>.py<XY>.nbi`` (or under NUMBA_CACHE_DIR, which
-    this does not search: there the answer is a harmless False and the notice shows)."""
+    this does not search: there the answer is a harmless False and the notice shows). An index
+    older than the source does not count: numba keys it by the function's line, so an edit that
+    moves a kernel leaves its old index behind for good."""
     source = Path(module_file)
     tag = f"py{sys.version_info.major}{sys.version_info.minor}"
     cache = source.parent / "__pycache__"
     indexes = list(cache.glob(f"{source.stem}.*.{tag}.nbi")) if cache.is_dir() else []
-    return bool(indexes) and min(p.stat().st_mtime for p in indexes) >= source.stat().st_mtime
+    return any(p.stat().st_mtime >= source.stat().st_mtime for p in indexes)
 
 
 def first_compile_notice(modules: tuple[str, ...] = ("simulate.integrators",), stream: TextIO | None = None) -> bool:

@@ -40,6 +40,24 @@ def test_compile_notice_follows_the_cache_of_the_source(tmp_path):
     assert not pg.compiled_kernels_cached(source)
 
 
+def test_compile_notice_ignores_the_stale_index_of_a_moved_kernel(tmp_path):
+    import os
+    import sys
+
+    source = tmp_path / "kernels.py"
+    source.write_text("x = 1\n")
+    cache = tmp_path / "__pycache__"
+    cache.mkdir()
+    tag = f"py{sys.version_info.major}{sys.version_info.minor}"
+    stale, fresh = cache / f"kernels.f-1.{tag}.nbi", cache / f"kernels.f-9.{tag}.nbi"
+    stale.write_bytes(b"")
+    os.utime(source, (stale.stat().st_mtime + 10,) * 2)     # the kernel moved to line 9 ...
+    assert not pg.compiled_kernels_cached(source)
+    fresh.write_bytes(b"")
+    os.utime(fresh, (stale.stat().st_mtime + 20,) * 2)      # ... and was compiled again there
+    assert pg.compiled_kernels_cached(source)
+
+
 def test_a_failed_stage_ends_without_a_final_line():
     out = io.StringIO()
     try:
