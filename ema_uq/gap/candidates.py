@@ -144,7 +144,7 @@ def _fit_nominal(run: _Diagnosis):
     reference = {k: v for k, v in (strategy.reference_fit or {}).items() if k in base.parameters}
     start = base.parameters.vector(reference)
     # the root model: the concept's own, or it with the model-form allowance's parameters appended
-    problem = FitProblem(**run.problem_args) if run.allowance is None else FitProblem(model=base, **run.problem_args)
+    problem = FitProblem(model=base, **run.problem_args)
     run.n_samples = problem.n_samples
     if strategy.hold_base:
         run.fixed = list(base.parameters.names)
@@ -154,9 +154,7 @@ def _fit_nominal(run: _Diagnosis):
         run.fixed = _unidentifiable_parameters(problem, start)
         run.n_sims += problem.free_index.size + 1
         if run.fixed:
-            problem = (FitProblem(parameters=base.parameters.fixing(run.fixed), **run.problem_args)
-                       if run.allowance is None else
-                       FitProblem(model=base, parameters=base.parameters.fixing(run.fixed), **run.problem_args))
+            problem = FitProblem(model=base, parameters=base.parameters.fixing(run.fixed), **run.problem_args)
         run.say(f"nominal ML fit of {base.name} on {problem.n_samples} samples x {len(d.channels)} channels"
                 + (f" ({', '.join(run.fixed)} held at nominal: these channels cannot determine them)"
                    if run.fixed else ""))
