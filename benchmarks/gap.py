@@ -144,6 +144,12 @@ def hash_sources(root: Path = ROOT) -> tuple[str, dict[str, str]]:
     return combined, each
 
 
+def _allowance_record(strategy, concept: str) -> dict | None:
+    """The model-form allowance a strategy fits (constants, tolerance, lag bound), None without one."""
+    allowance = strategy.model_form(get_model(concept)) if strategy.model_form is not None else None
+    return None if allowance is None else allowance.to_json()
+
+
 def _frozen_method() -> dict:
     """Catalogue, thresholds and strategy knobs as the code sets them."""
     def plain(obj):
@@ -158,7 +164,8 @@ def _frozen_method() -> dict:
                                "where_source": strategy.where_source,
                                "metric": type(strategy.metric).__name__,
                                "z_significant": getattr(strategy.metric, "z_significant", None),
-                               "structure": plain(strategy.structure)}
+                               "structure": plain(strategy.structure),
+                               "model_form": _allowance_record(strategy, concept)}
     return {"catalogue": {c: catalogue_families(c) for c in PROTOCOL_SELFCHECK["concepts"]},
             "thresholds": plain(Thresholds()), "settings": plain(DiagnosisSettings()),
             "constants": {"Z_HELD_OUT": attribute.Z_HELD_OUT, "PROFILE_POINTS": attribute.PROFILE_POINTS,

@@ -219,6 +219,10 @@ def test_protocol_refuses_the_evaluation_block_when_a_source_changed(tmp_path, m
     protocol = tmp_path / "protocol.yaml"
     frozen = bench.freeze(protocol, root=root, development=[11], evaluation=[5201])
     assert frozen["blocks"]["evaluation"]["seeds"] == [5201] and len(frozen["sources"]["sha256"]) == 64
+    # the model-form allowance the strategy fits is part of the frozen method, with its bounds
+    allowance = frozen["strategies"]["htls"]["model_form"]
+    assert frozen["settings"]["model_form_allowance"] is True
+    assert "r" in allowance["kinematic_constants"] and 0.0 < allowance["command_lag_max_s"] < 1.0
     assert bench.check_sources(bench.load_protocol(protocol), root=root) is None
     with open(root / "ema_uq" / "gap" / "attribute.py", "a", encoding="utf-8") as fh:
         fh.write("\n# changed\n")
