@@ -34,10 +34,15 @@ def covariance(residuals: np.ndarray) -> np.ndarray:
     """R = (1/N) Σ e eᵀ of (N, n_channels) residuals (eq. 49), or of a batch (n_sets, N, n_ch).
 
     A matrix product eᵀ e (BLAS), not an einsum: with few channels and many samples the
-    einsum loop costs more than the simulations of the posterior."""
+    einsum loop costs more than the simulations of the posterior.
+
+    A trial of a fit whose simulation diverges has residuals so large that their products
+    overflow: R gets an infinite entry, :func:`log_det_r` maps it to +inf and the fit refuses
+    the trial. That is the intended path, so the overflow is not warned about."""
     residuals = np.asarray(residuals)
     n = residuals.shape[-2]
-    return np.matmul(np.swapaxes(residuals, -1, -2), residuals) / n
+    with np.errstate(over="ignore", invalid="ignore"):
+        return np.matmul(np.swapaxes(residuals, -1, -2), residuals) / n
 
 
 def information(sens: np.ndarray, r_inv: np.ndarray) -> np.ndarray:

@@ -4,6 +4,8 @@ residual covariance, Fisher information, the posterior likelihoods and predictiv
 samples, several experiments)."""
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -22,6 +24,14 @@ def test_covariance_equals_the_einsum_form():
                                rtol=1e-12, atol=1e-20)
     r = statistics.covariance(batch)
     np.testing.assert_array_equal(r, np.swapaxes(r, -1, -2))      # symmetric to the last bit
+
+
+def test_a_diverged_trial_gives_an_infinite_objective_without_a_warning():
+    residuals = np.full((200, 2), 1e200)                  # a trial simulation that blew up
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        r = statistics.covariance(residuals)
+        assert statistics.log_det_r(r) == np.inf
 
 
 def test_information_equals_the_three_operand_einsum():
