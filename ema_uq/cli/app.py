@@ -113,6 +113,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         _apply_study(args, _given_options(argv))
         if args.verb in SIMULATING_VERBS:
             from ..progress import first_compile_notice
+            from ..threads import follow_scheduler_threads
+
+            follow_scheduler_threads()
 
             first_compile_notice(("simulate.integrators", "gap.variants") if args.verb == "gap-selfcheck"
                                  else ("simulate.integrators",))

@@ -95,6 +95,7 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from ..models import get_model
+from ..threads import single_threaded_worker
 from .attribute import diagnose
 from .strategy import DiagnosisSettings
 from ..errors import EmaUqError
@@ -369,8 +370,10 @@ def self_check(*, seed: int = DEFAULT_SEED, quick: bool = False, concepts: Seque
         results = map(run_case, cases_missing, [settings] * len(missing))
         pool = None
     else:
-        # spawn, not fork: numba's thread pool is not safe to fork
-        pool = ProcessPoolExecutor(max_workers=min(jobs, len(missing)), mp_context=get_context("spawn"))
+        # spawn, not fork: numba's thread pool is not safe to fork; one thread in each worker,
+        # as the pool already runs one worker per core
+        pool = ProcessPoolExecutor(max_workers=min(jobs, len(missing)), mp_context=get_context("spawn"),
+                                   initializer=single_threaded_worker)
         results = pool.map(run_case, cases_missing, [settings] * len(missing))
     try:
         for i, outcome in zip(missing, results):

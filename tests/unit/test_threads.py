@@ -1,0 +1,33 @@
+"""The thread share of a process: one numba and one BLAS thread in a self-check worker, and
+numba told the share a scheduler gives a job (``OMP_NUM_THREADS``) unless it is told already."""
+from __future__ import annotations
+
+import os
+from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import get_context
+
+from ema_uq.threads import follow_scheduler_threads, single_threaded_worker
+
+
+def _threads_in_this_process() -> tuple[int, list[int]]:
+    import numba
+    from threadpoolctl import threadpool_info
+
+    return numba.get_num_threads(), [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]
+
+
+def test_a_pool_worker_runs_one_numba_and_one_blas_thread():
+    with ProcessPoolExecutor(1, mp_context=get_context("spawn"), initializer=single_threaded_worker) as pool:
+        numba_threads, blas_threads = pool.submit(_threads_in_this_process).result()
+    assert numba_threads == 1 and blas_threads and set(blas_threads) == {1}
+
+
+def test_numba_follows_the_schedulers_share_unless_told_otherwise():
+    environ = {"OMP_NUM_THREADS": "1"}
+    assert follow_scheduler_threads(environ) == 1 and environ["NUMBA_NUM_THREADS"] == "1"
+    environ = {"OMP_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "2"}
+    assert follow_scheduler_threads(environ) is None and environ["NUMBA_NUM_THREADS"] == "2"
+    big = {"OMP_NUM_THREADS": str(10 * (os.cpu_count() or 1))}
+    assert follow_scheduler_threads(big) == (os.cpu_count() or 1)            # never more than the cores
+    for unset in ({}, {"OMP_NUM_THREADS": ""}, {"OMP_NUM_THREADS": "0"}, {"OMP_NUM_THREADS": "auto"}):
+        assert follow_scheduler_threads(unset) is None and "NUMBA_NUM_THREADS" not in unset
