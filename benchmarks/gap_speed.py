@@ -1,0 +1,73 @@
+"""Cost of one gap diagnosis: wall time on one core, simulations in total and per candidate.
+
+Record: the independent simulator's Stribeck variant (``stribeck_rational``, breakaway ratio 1.0,
+Stribeck speed 1.5 rad/s) on a base perturbed U(+-10 %) off nominal, 2 % noise, every output
+channel; estimation on deploy-retract, held out on both validation runs (as the self-check).
+Four candidates: stribeck, sensor_delay, shaft_compliance, load_dependent_friction.
+
+Columns, measured in this run on this machine, one numba and one BLAS thread (the share of one
+self-check worker): the method without the model-form allowance (version 1) and with it
+(version 2, the default). Beside them the figures the performance issue recorded before the
+work (HT/LS: 92 s, 636 simulations, on the code of that time) and its targets (HT/LS <= 20 s,
+LT/HS <= 45 s on one core). A warm-up diagnosis on a short record runs first so kernel
+compilation and cache loading are excluded.
+
+Usage: python benchmarks/gap_speed.py [--concept htls|lths|both] [--seed N]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+os.environ.setdefault("NUMBA_NUM_THREADS", "1")      # before numba is imported: one core
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+from ema_uq.gap.attribute import diagnose  # noqa: E402 - after the thread settings
+from ema_uq.gap.strategy import DiagnosisSettings  # noqa: E402
+from ema_uq.gap.variants import make_records  # noqa: E402
+
+CANDIDATES = ("stribeck", "sensor_delay", "shaft_compliance", "load_dependent_friction")
+VARIANT, PARAMS = "stribeck_rational", {"ratio": 1.0, "speed": 1.5}
+BEFORE = {"htls": (92.0, 636)}            # the issue's figures before the work (s, simulations)
+TARGET_S = {"htls": 20.0, "lths": 45.0}
+
+
+def one(concept: str, seed: int, version: int) -> dict:
+    estimation, validation, validation2, _ = make_records(concept, VARIANT, PARAMS, seed=seed)
+    t0 = time.perf_counter()
+    result = diagnose([estimation], [validation, validation2], candidates=list(CANDIDATES),
+                      settings=DiagnosisSettings(model_form_allowance=version == 2), seed=seed)
+    wall = time.perf_counter() - t0
+    rows = {c.effect: c for c in result.ranking}
+    return {"wall": wall, "sims": result.n_simulations, "verdict": result.verdict, "effect": result.effect,
+            "per_candidate": {name: (rows[name].n_simulations, rows[name].wall_time_s) for name in rows}}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--concept", choices=("htls", "lths", "both"), default="both")
+    parser.add_argument("--seed", type=int, default=7)
+    args = parser.parse_args()
+    concepts = ("htls", "lths") if args.concept == "both" else (args.concept,)
+    for concept in concepts:
+        one(concept, args.seed, 2)                            # warm-up: compile or load every kernel used
+        runs = {v: one(concept, args.seed, v) for v in (1, 2)}
+        before = BEFORE.get(concept)
+        print(f"\n{concept}: one gap diagnosis, {len(CANDIDATES)} candidates, one core")
+        print(f"  {'':40s}{'before (issue)':>16s}{'version 1':>16s}{'version 2':>16s}{'target':>10s}")
+        print(f"  {'wall time [s]':40s}{(f'{before[0]:.0f}' if before else '-'):>16s}"
+              f"{runs[1]['wall']:16.1f}{runs[2]['wall']:16.1f}{TARGET_S[concept]:10.0f}")
+        print(f"  {'simulations':40s}{(str(before[1]) if before else '-'):>16s}"
+              f"{runs[1]['sims']:16d}{runs[2]['sims']:16d}")
+        for name in CANDIDATES:
+            cells = [runs[v]["per_candidate"].get(name) for v in (1, 2)]
+            text = [f"{c[0]} / {c[1]:.1f} s" if c else "-" for c in cells]
+            print(f"  {'  ' + name + ' (sims / s)':40s}{'-':>16s}{text[0]:>16s}{text[1]:>16s}")
+        print(f"  verdict: v1 {runs[1]['verdict']} {runs[1]['effect'] or ''}, "
+              f"v2 {runs[2]['verdict']} {runs[2]['effect'] or ''}")
+
+
+if __name__ == "__main__":
+    main()
