@@ -31,3 +31,20 @@ def test_numba_follows_the_schedulers_share_unless_told_otherwise():
     assert follow_scheduler_threads(big) == (os.cpu_count() or 1)            # never more than the cores
     for unset in ({}, {"OMP_NUM_THREADS": ""}, {"OMP_NUM_THREADS": "0"}, {"OMP_NUM_THREADS": "auto"}):
         assert follow_scheduler_threads(unset) is None and "NUMBA_NUM_THREADS" not in unset
+
+
+def test_the_command_line_gives_numba_the_jobs_share(tmp_path):
+    """A workflow job (Snakemake sets OMP_NUM_THREADS to the rule's threads) runs numba on that share."""
+    import subprocess
+    import sys
+
+    script = ("import sys\n"
+              "from ema_uq.cli import main\n"
+              f"code = main(['simulate', '--concept', 'htls', '--experiment', 'deploy-retract', '--out', {str(tmp_path / 'run.csv')!r}])\n"
+              "import numba\n"                 # after the command: it must not have needed us to import it
+              "print('numba threads', numba.get_num_threads()); sys.exit(code)\n")
+    environ = {k: v for k, v in os.environ.items() if k != "NUMBA_NUM_THREADS"}
+    environ["OMP_NUM_THREADS"] = "1"
+    done = subprocess.run([sys.executable, "-c", script], env=environ, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    assert "numba threads 1" in done.stdout
