@@ -13,8 +13,12 @@ BLAS thread, 12.6 s with one numba thread as well; one diagnosis alone, one thre
 * :func:`follow_scheduler_threads` is called by the command line before anything imports numba:
   a scheduler that gives a job its threads says so in ``OMP_NUM_THREADS`` (Snakemake sets it for
   every job to the rule's ``threads``; SLURM job scripts usually do), and numba is told the same
-  share unless ``NUMBA_NUM_THREADS`` is set already. Thread counts change how fast the kernels
-  run, never what they compute: every parameter set is integrated by one thread alone.
+  share unless ``NUMBA_NUM_THREADS`` is set already.
+
+numba's thread count changes how fast the kernels run, never what they compute: every parameter
+set is integrated by one thread alone. A threaded BLAS may split a product differently and so
+differ in the last bits; one thread per worker also makes the self-check's numbers independent
+of the machine's core count.
 """
 from __future__ import annotations
 
