@@ -132,7 +132,7 @@ def test_allowance_off_reproduces_method_version_1():
     assert got == pytest.approx(V1_NONE, rel=1e-9)
 
 
-def test_the_frozen_version_1_protocol_runs_without_the_allowance(tmp_path):
+def test_a_version_1_protocol_runs_without_the_allowance(tmp_path):
     import importlib.util
     from pathlib import Path
 
@@ -140,8 +140,10 @@ def test_the_frozen_version_1_protocol_runs_without_the_allowance(tmp_path):
     spec = importlib.util.spec_from_file_location("gap_bench", root / "benchmarks" / "gap.py")
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
-    v1 = bench.load_protocol(root / "benchmarks" / "gap_protocol.yaml")
-    assert "model_form_allowance" not in v1["settings"]
+    committed = bench.load_protocol(root / "benchmarks" / "gap_protocol.yaml")
+    assert bench.protocol_settings(committed).model_form_allowance is committed["settings"]["model_form_allowance"]
+    # a protocol frozen before the allowance existed has no such setting: it runs as it was frozen
+    v1 = {**committed, "settings": {k: v for k, v in committed["settings"].items() if k != "model_form_allowance"}}
     assert bench.protocol_settings(v1) == DiagnosisSettings(model_form_allowance=False)
     # a protocol frozen now records the setting, and runs with it
     frozen = bench.freeze(tmp_path / "protocol.yaml", development=[11], evaluation=[5201])
