@@ -448,7 +448,7 @@ rule sbc_replicate:
     conda:
         CONDA_ENV
     shell:
-        "NUMBA_NUM_THREADS={threads} ema-uq sbc --study {input.study} --replicate {wildcards.replicate} --seed {params.seed} "
+        "ema-uq sbc --study {input.study} --replicate {wildcards.replicate} --seed {params.seed} "
         "--draws {params.draws} --prior-spread {params.prior_spread} --backend results/sbc/{wildcards.study}/replicate_{wildcards.replicate}.h5 "
         "--out {output} > {log} 2>&1"
 
