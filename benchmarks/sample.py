@@ -22,8 +22,13 @@ step for step (checked and printed); its ESS/s is the batched ESS per step times
 per second. The independence run adapts its proposal after a 100-step pilot and its stopping
 rule and ESS count only the steps after it.
 
+Integrator of the likelihood's simulations (``--integrator``): by default the one the default
+HT/LS study samples with (``sample.integrator`` of ``studies/htls.yaml``, "hybrid"), so the figure
+is the workflow's posterior stage; ``--integrator rk4`` gives the command line's own default (the
+concept's RK4), the configuration the issue's first figures were measured on.
+
 Usage: python benchmarks/sample.py [--moves independence de stretch] [--budget S]
-       [--peer-steps N] [--seed N]
+       [--peer-steps N] [--seed N] [--integrator rk4|dopri5|hybrid]
 
 Before/after: ``--compare BASE_TREE`` runs the first move kind for a fixed ``--steps`` (same
 seed, so both sides sample nearly the same chain and the ESS agree) alternately with the
@@ -51,6 +56,10 @@ import numpy as np
 
 from ema_uq import bayes, deploy_retract, get_model, synthesize
 from ema_uq.identify import FitProblem, estimate
+from ema_uq.bayes.sampler import _with_integrator as with_integrator   # the sampler's own switch
+from ema_uq.study import load_study, section
+
+DEFAULT_STUDY = Path(__file__).resolve().parents[1] / "studies" / "htls.yaml"
 
 TARGET_ESS = 1000
 TARGET_SECONDS = 300.0
@@ -63,11 +72,15 @@ def main() -> None:
     ap.add_argument("--budget", type=float, default=270.0, help="seconds per move kind (default 270)")
     ap.add_argument("--peer-steps", type=int, default=50, help="steps of the one-at-a-time run (default 50)")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--integrator", choices=("rk4", "dopri5", "hybrid"), default=None,
+                    help="integrator of the likelihood's simulations (default: the default HT/LS study's)")
     ap.add_argument("--compare", metavar="BASE_TREE", help="before/after against the package in BASE_TREE")
     ap.add_argument("--steps", type=int, default=400, help="with --compare: steps per run (default 400)")
     ap.add_argument("--rounds", type=int, default=2, help="with --compare: runs per side, interleaved (default 2)")
     ap.add_argument("--json", help=argparse.SUPPRESS)          # one fixed-step run, figures to this file
     args = ap.parse_args()
+    if args.integrator is None:
+        args.integrator = section(load_study(DEFAULT_STUDY), "sample").get("integrator") or "rk4"
     if args.compare:
         return _compare(args)
     if args.json:
@@ -79,13 +92,13 @@ def main() -> None:
     fit = estimate(problem, start=model.parameters.nominal)
     n_free = len(fit.free_names)
     print(f"HT/LS, {n_free} free parameters, {problem.n_samples} samples x {len(problem.channels)} channels; "
-          f"{numba.get_num_threads()} numba threads")
+          f"{numba.get_num_threads()} numba threads; likelihood simulated with {args.integrator}")
 
     store = tempfile.TemporaryDirectory()
     rows, results = {}, {}
     for kind in args.moves:
-        settings = bayes.SamplerSettings(moves=kind, n_predictive=0)
-        per_set = _time_per_set(problem, fit, settings.walkers_for(n_free))
+        settings = bayes.SamplerSettings(moves=kind, n_predictive=0, integrator=args.integrator)
+        per_set = _time_per_set(problem, fit, settings)
         n_chains = settings.walkers_for(n_free) * settings.n_ensembles
         steps = int(args.budget / (per_set * n_chains) * 0.95) // settings.check_every * settings.check_every
         steps = max(steps, 2 * settings.check_every)
@@ -99,7 +112,7 @@ def main() -> None:
 
     first = args.moves[0]
     peer_settings = bayes.SamplerSettings(moves=first, max_steps=args.peer_steps, check_every=args.peer_steps,
-                                          n_predictive=0, vectorize=False)
+                                          n_predictive=0, vectorize=False, integrator=args.integrator)
     peer = bayes.sample(problem, fit, settings=peer_settings, seed=args.seed, predictive=False,
                         backend=Path(store.name) / "peer.h5")
     batched = results[first]
@@ -151,10 +164,11 @@ def _fixed_run(args) -> None:
     ``args.json``: per-parameter bulk ESS, sampling wall time, and the split of one batched
     posterior evaluation into simulation and likelihood linear algebra (best of 5)."""
     problem, fit = _problem()
-    settings = bayes.SamplerSettings(moves=args.moves[0], n_predictive=0)
+    settings = bayes.SamplerSettings(moves=args.moves[0], n_predictive=0, integrator=args.integrator)
     n_free = len(fit.free_names)
     batch = settings.walkers_for(n_free)
-    _time_per_set(problem, fit, batch)                     # compiles every kernel the run uses
+    _time_per_set(problem, fit, settings)                  # compiles every kernel the run uses
+    problem = with_integrator(problem, args.integrator)
     posterior = bayes.LogPosterior(problem, bayes.build_priors(problem), fit.estimate)
     free = np.repeat(fit.estimate[problem.free_index][None], batch, axis=0)
     thetas = problem.full_vectors(free, fit.estimate)
@@ -188,7 +202,7 @@ def _compare(args) -> None:
                 out = Path(tmp) / f"{label}_{r}.json"
                 env = {**os.environ, "PYTHONPATH": str(tree)}
                 subprocess.run([sys.executable, __file__, "--moves", args.moves[0], "--steps", str(args.steps),
-                                "--seed", str(args.seed), "--json", str(out)], env=env, check=True)
+                                "--seed", str(args.seed), "--integrator", args.integrator, "--json", str(out)], env=env, check=True)
                 runs[label].append(json.loads(out.read_text()))
                 print(f"round {r + 1} {label}: {runs[label][-1]['wall']:.1f} s for {args.steps} steps", flush=True)
     best = {k: min(v, key=lambda d: d["wall"]) for k, v in runs.items()}
@@ -215,9 +229,11 @@ def _compare(args) -> None:
     print(line("min", min(b["ess_bulk"]), min(a["ess_bulk"])))
 
 
-def _time_per_set(problem, fit, batch: int) -> float:
-    """Seconds per parameter set of the log posterior in batches of ``batch`` (a warm-up call
-    compiles first)."""
+def _time_per_set(problem, fit, settings) -> float:
+    """Seconds per parameter set of the log posterior in batches of one ensemble's walkers,
+    simulated with the settings' integrator (a warm-up call compiles first)."""
+    batch = settings.walkers_for(len(fit.free_names))
+    problem = with_integrator(problem, settings.integrator)
     posterior = bayes.LogPosterior(problem, bayes.build_priors(problem), fit.estimate)
     rng = np.random.default_rng(0)
     free = fit.estimate[problem.free_index] + 0.1 * rng.standard_normal((batch, len(fit.free_names))) * np.sqrt(
