@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
-from scipy import stats
+from scipy import special
 
 from ..experiments import Measurement
 from ..simulate import simulate_batch
@@ -72,7 +72,7 @@ def validate(fit_values: np.ndarray, measurement: Measurement, *, channels: Sequ
     inputs = {k: v for k, v in measurement.experiment.inputs.items() if np.std(v) > 0}
     # the maximum over all lags and inputs is tested, hence the Bonferroni level
     n_tests = (2 * MAX_LAG + 1) * max(len(inputs), 1)
-    bound = stats.norm.ppf(1 - ALPHA / (2 * n_tests)) / np.sqrt(n)
+    bound = special.ndtri(1 - ALPHA / (2 * n_tests)) / np.sqrt(n)     # the normal quantile
     report = ValidationReport(measurement.experiment.name, confidence_bound=float(bound))
     for j, ch in enumerate(channels):
         z, y = observed[:, j], predicted[:, j]

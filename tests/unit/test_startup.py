@@ -23,6 +23,13 @@ def test_help_and_import_load_no_numerics():
     assert not heavy & _modules_after("import ema_uq")
 
 
+def test_fitting_modules_load_neither_scipy_stats_nor_matplotlib():
+    # ~0.5 s each of a warm `identify` went to importing them; the fit needs neither
+    loaded = _modules_after("import ema_uq.identify, ema_uq.identify.validation, ema_uq.statistics, "
+                            "ema_uq.report.outputs")
+    assert not {"scipy.stats", "matplotlib"} & loaded
+
+
 def test_cli_names_agree_with_the_package():
     from ema_uq.experiments import EXPERIMENTS
     from ema_uq.models import concepts
