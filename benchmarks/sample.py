@@ -55,8 +55,8 @@ import numba
 import numpy as np
 
 from ema_uq import bayes, deploy_retract, get_model, synthesize
-from ema_uq.identify import FitProblem, estimate
 from ema_uq.bayes.sampler import _with_integrator as with_integrator   # the sampler's own switch
+from ema_uq.identify import FitProblem, estimate
 from ema_uq.study import load_study, section
 
 DEFAULT_STUDY = Path(__file__).resolve().parents[1] / "studies" / "htls.yaml"
@@ -202,7 +202,8 @@ def _compare(args) -> None:
                 out = Path(tmp) / f"{label}_{r}.json"
                 env = {**os.environ, "PYTHONPATH": str(tree)}
                 subprocess.run([sys.executable, __file__, "--moves", args.moves[0], "--steps", str(args.steps),
-                                "--seed", str(args.seed), "--integrator", args.integrator, "--json", str(out)], env=env, check=True)
+                                "--seed", str(args.seed), "--integrator", args.integrator, "--json", str(out)],
+                               env=env, check=True)
                 runs[label].append(json.loads(out.read_text()))
                 print(f"round {r + 1} {label}: {runs[label][-1]['wall']:.1f} s for {args.steps} steps", flush=True)
     best = {k: min(v, key=lambda d: d["wall"]) for k, v in runs.items()}
