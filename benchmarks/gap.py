@@ -41,7 +41,7 @@ version 1, no ``model_form_allowance`` there) runs without it.
 
 Usage: python benchmarks/gap.py [--concept htls|lths|both] [--sensors full realistic] [--jobs N]
                                 [--quick] [--none-per-set N] [--kinds ...] [--none-from K] [--seed N]
-                                [--peer] [--out JSON] [--method-version 1|2]
+                                [--peer] [--out JSON] [--method-version 1|2|3]
        python benchmarks/gap.py --protocol benchmarks/gap_protocol.yaml --block development|evaluation
                                 [--jobs N] [--chunk I/N] [--results DIR]
        python benchmarks/gap.py --protocol benchmarks/gap_protocol.yaml --freeze [--new-evaluation]
@@ -330,10 +330,13 @@ def _count_values(value) -> int:
 def protocol_settings(protocol: dict) -> DiagnosisSettings:
     """The diagnosis settings a protocol froze (its ``settings``). A protocol frozen before the
     model-form allowance existed (method version 1: no ``model_form_allowance`` in its settings)
-    runs without it, so that its blocks go on with the method they were frozen for."""
+    runs without it, and one frozen before the converged step (method versions 1-2: no
+    ``converged_step``) at the model's own step, so that its blocks go on with the method they
+    were frozen for."""
     known = {f.name for f in dataclasses.fields(DiagnosisSettings)}
     frozen = {k: v for k, v in dict(protocol.get("settings") or {}).items() if k in known}
     frozen.setdefault("model_form_allowance", False)
+    frozen.setdefault("converged_step", False)
     return DiagnosisSettings(**frozen)
 
 
@@ -461,16 +464,18 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=DEFAULT_SEED)
     parser.add_argument("--peer", action="store_true", help="also run the former circular self-check")
     parser.add_argument("--out", metavar="JSON", help="write scores and per-case table as JSON")
-    parser.add_argument("--method-version", type=int, choices=(1, 2), default=2,
-                        help="2 (default): fit the model-form allowance (kinematic tolerance, command lag) in every "
-                             "model; 1: the method without it")
+    parser.add_argument("--method-version", type=int, choices=(1, 2, 3), default=3,
+                        help="3 (default): 2 and every model integrated at the model contract's converged step; 2: "
+                             "fit the model-form allowance (kinematic tolerance, command lag) in every model at the "
+                             "model's own step; 1: the method without the allowance")
     args = parser.parse_args()
 
     concepts = ["htls", "lths"] if args.concept == "both" else [args.concept]
     load = os.getloadavg()[0]
     result = self_check(seed=args.seed, quick=args.quick, concepts=concepts, sensors=args.sensors,
                         none_per_set=args.none_per_set, kinds=args.kinds, none_first=args.none_from, jobs=args.jobs,
-                        settings=DiagnosisSettings(model_form_allowance=args.method_version == 2),
+                        settings=DiagnosisSettings(model_form_allowance=args.method_version >= 2,
+                                                   converged_step=args.method_version >= 3),
                         progress=lambda line: print(line, flush=True))
     print()
     print(result.summary())

@@ -6,8 +6,8 @@ channel; estimation on deploy-retract, held out on both validation runs (as the 
 Four candidates: stribeck, sensor_delay, shaft_compliance, load_dependent_friction.
 
 Columns, measured in this run on this machine, one numba and one BLAS thread (the share of one
-self-check worker): the method without the model-form allowance (version 1) and with it
-(version 2, the default). Beside them the figures the performance issue recorded before the
+self-check worker): the method without the model-form allowance (version 1), with it
+(version 2) and with it at the model contract's converged RK4 step (version 3, the default). Beside them the figures the performance issue recorded before the
 work (HT/LS: 92 s, 636 simulations, on the code of that time) and its targets (HT/LS <= 20 s,
 LT/HS <= 45 s on one core). A warm-up diagnosis on a short record runs first so kernel
 compilation and cache loading are excluded.
@@ -36,9 +36,10 @@ TARGET_S = {"htls": 20.0, "lths": 45.0}
 
 def one(concept: str, seed: int, version: int) -> dict:
     estimation, validation, validation2, _ = make_records(concept, VARIANT, PARAMS, seed=seed)
+    settings = DiagnosisSettings(model_form_allowance=version >= 2, converged_step=version >= 3)
     t0 = time.perf_counter()
-    result = diagnose([estimation], [validation, validation2], candidates=list(CANDIDATES),
-                      settings=DiagnosisSettings(model_form_allowance=version == 2), seed=seed)
+    result = diagnose([estimation], [validation, validation2], candidates=list(CANDIDATES), settings=settings,
+                      seed=seed)
     wall = time.perf_counter() - t0
     rows = {c.effect: c for c in result.ranking}
     return {"wall": wall, "sims": result.n_simulations, "verdict": result.verdict, "effect": result.effect,
@@ -51,23 +52,24 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=7)
     args = parser.parse_args()
     concepts = ("htls", "lths") if args.concept == "both" else (args.concept,)
+    versions = (1, 2, 3)
     for concept in concepts:
-        one(concept, args.seed, 2)                            # warm-up: compile or load every kernel used
-        runs = {v: one(concept, args.seed, v) for v in (1, 2)}
+        one(concept, args.seed, 3)                            # warm-up: compile or load every kernel used
+        runs = {v: one(concept, args.seed, v) for v in versions}
         before = BEFORE.get(concept)
         print(f"\n{concept}: one gap diagnosis, {len(CANDIDATES)} candidates, one core")
-        print(f"  {'':40s}{'before (issue)':>16s}{'version 1':>16s}{'version 2':>16s}{'target':>10s}")
+        print(f"  {'':40s}{'before (issue)':>16s}" + "".join(f"{f'version {v}':>16s}" for v in versions)
+              + f"{'target':>10s}")
         print(f"  {'wall time [s]':40s}{(f'{before[0]:.0f}' if before else '-'):>16s}"
-              f"{runs[1]['wall']:16.1f}{runs[2]['wall']:16.1f}{TARGET_S[concept]:10.0f}")
+              + "".join(f"{runs[v]['wall']:16.1f}" for v in versions) + f"{TARGET_S[concept]:10.0f}")
         print(f"  {'simulations':40s}{(str(before[1]) if before else '-'):>16s}"
-              f"{runs[1]['sims']:16d}{runs[2]['sims']:16d}")
+              + "".join(f"{runs[v]['sims']:16d}" for v in versions))
         for name in CANDIDATES:
-            cells = [runs[v]["per_candidate"].get(name) for v in (1, 2)]
-            text = [f"{c[0]} / {c[1]:.1f} s" if c else "-" for c in cells]
-            print(f"  {'  ' + name + ' (sims / s)':40s}{'-':>16s}{text[0]:>16s}{text[1]:>16s}")
-        print(f"  verdict: v1 {runs[1]['verdict']} {runs[1]['effect'] or ''}, "
-              f"v2 {runs[2]['verdict']} {runs[2]['effect'] or ''}")
-
+            cells = [runs[v]["per_candidate"].get(name) for v in versions]
+            text = "".join(f"{f'{c[0]} / {c[1]:.1f} s' if c else '-':>16s}" for c in cells)
+            print(f"  {'  ' + name + ' (sims / s)':40s}{'-':>16s}{text}")
+        print("  verdict: " + ", ".join(f"v{v} {runs[v]['verdict']} {runs[v]['effect'] or ''}".rstrip()
+                                        for v in versions))
 
 if __name__ == "__main__":
     main()

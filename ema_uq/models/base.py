@@ -49,7 +49,12 @@ class Model:
     output_units : unit of each output channel.
     parameters : the estimated parameters Θ (their nominal values are the defaults).
     constants : design constants and model settings (all fixed), in kernel order.
-    integration_step : fixed RK4 step [s] known to be converged below the noise level.
+    integration_step : fixed RK4 step [s] of every simulation, converged to ~1e-6 of each output's range.
+    converged_step : the coarser RK4 step the model contract states converged well under the noise
+        (docs/MODEL_SPEC.md: HT/LS 1 ms, LT/HS 0.5 ms) for the nominal dynamics; None: none stated.
+    at_converged_step : integrate by RK4 at ``converged_step`` (see :attr:`rk4_step`), for
+        campaigns of many fits where an output error of ~1e-5 of its range is immaterial (the gap
+        diagnosis, method version 3). Augmented models inherit the flag.
     integrator : "dopri5" (adaptive Dormand-Prince 5(4), tolerance ``rtol``, absolute
         tolerance ``rtol * state_scales``), "hybrid" (exact steps over the sample intervals
         where the concept is linear, "dopri5" elsewhere) or "rk4" (fixed ``integration_step``).
@@ -75,6 +80,8 @@ class Model:
     required_inputs: tuple[str, ...] = REQUIRED_INPUTS
     integrator: str = "rk4"
     rtol: float = 3e-8
+    converged_step: float | None = None
+    at_converged_step: bool = False
     state_scales: tuple[float, ...] = ()
     sensor_sets: Mapping[str, tuple[str, ...]] = field(default_factory=dict, compare=False, repr=False)
     loss_referral: Callable[[Mapping[str, float]], dict[str, float]] | None = field(
@@ -100,6 +107,19 @@ class Model:
             if stray:
                 raise ParameterError(f"sensor set {set_name!r} of concept {self.name} names unknown output "
                                      f"{stray[0]!r}; outputs: {', '.join(self.outputs)}")
+
+    @property
+    def rk4_step(self) -> float:
+        """The fixed RK4 step [s] a simulation of this model takes: ``converged_step`` when
+        ``at_converged_step`` is set and no active effect brings dynamics faster than the nominal
+        ones (``Effect.fast_dynamics``: a mode, a play's relaxation, a forcing at motor-angle
+        order), which the contract's step was not verified for; else ``integration_step``."""
+        if not self.at_converged_step or self.converged_step is None:
+            return self.integration_step
+        catalogue = self.base_model.effect_catalogue
+        if any(getattr(catalogue.get(name), "fast_dynamics", False) for name in self.effects):
+            return self.integration_step
+        return self.converged_step
 
     # --- drive-train structure ------------------------------------------------------
     def loss_factors(self, constants: np.ndarray | None = None) -> dict[str, float]:

@@ -148,7 +148,12 @@ class Effect:
     the effect carries beside its own (a play inside a compliant coupling carries the coupling's
     spring, ``shaft_compliance``): such a compound is simulated like any effect, but the gap
     diagnosis does not offer it as a candidate, since a candidate is one mechanism and a
-    compound would explain its parts' faults under its own family's name.
+    compound would explain its parts' faults under its own family's name. ``fast_dynamics``: the
+    effect brings a time scale faster than the nominal dynamics (a torsional mode, a play's
+    relaxation, a forcing at motor-angle order); a model with it runs at the concept's fine
+    ``integration_step`` even where the contract's coarser converged step is asked for
+    (:attr:`ema_uq.models.base.Model.rk4_step`), since that step was verified on the nominal
+    dynamics only.
     """
 
     name: str
@@ -164,6 +169,7 @@ class Effect:
     postprocess: Callable | None = None
     family: str = ""
     combines: tuple[str, ...] = ()
+    fast_dynamics: bool = False
 
     def __post_init__(self) -> None:
         if not self.family:  # a form of its own: the family is the effect itself
@@ -275,7 +281,8 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (
         extra_states={"htls": ("backlash_b1", "backlash_b2"), "lths": ("backlash_b",)},
         state_scales={"backlash_b1": 0.1, "backlash_b2": 0.1, "backlash_b": 0.1},
         # play relaxation [s] and clamp softness [1]
-        constants={"htls": {"relaxation": 2e-3, "softness": 0.05}, "lths": {"relaxation": 1e-3, "softness": 0.05}}),
+        constants={"htls": {"relaxation": 2e-3, "softness": 0.05}, "lths": {"relaxation": 1e-3, "softness": 0.05}},
+        fast_dynamics=True),
     Effect(
         "stribeck",
         "Coulomb friction rising near zero speed: C(v) = C (1 + ρ exp(-(v/v_s)²)) on every Coulomb term",
@@ -299,7 +306,8 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (
         extra_states={"htls": ("shaft_twist", "shaft_twist_rate"), "lths": ("shaft_twist", "shaft_twist_rate")},
         state_scales={"shaft_twist": 0.01, "shaft_twist_rate": 1.0},  # [rad], [rad/s]
         # fastest resolved torsional mode (1 / the concept's RK4 step) [rad/s]
-        constants={"htls": {"mode_omega_max": 1.0 / 5e-4}, "lths": {"mode_omega_max": 1.0 / 2e-4}}),
+        constants={"htls": {"mode_omega_max": 1.0 / 5e-4}, "lths": {"mode_omega_max": 1.0 / 2e-4}},
+        fast_dynamics=True),
     Effect(
         "ujoint_kinematics",
         "exact U-joint speed factor g_U(θ) of eq. 8: speed and torque ripple at twice the shaft rotation",
@@ -330,7 +338,8 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (
         start={"torque_ripple_amplitude": 0.05, "torque_ripple_phase": 0.0},
         off={"torque_ripple_amplitude": 0.0, "torque_ripple_phase": 0.0},
         signature=("periodic", "low_speed"), magnitude="torque_ripple_amplitude",
-        constants={"htls": {"periods": 6.0}, "lths": {"periods": 4.0}}),  # ripple periods per motor revolution
+        constants={"htls": {"periods": 6.0}, "lths": {"periods": 4.0}},  # ripple periods per motor revolution
+        fast_dynamics=True),
     # further forms of the families above (the diagnosis names the family)
     Effect(
         "backlash_compliant",
@@ -357,7 +366,7 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (
         # as shaft_compliance, and the dead band's corner softness [1]
         constants={"htls": {"load_fraction": 0.5, "mode_omega_max": 1.0 / 5e-4, "softness": 0.05},
                    "lths": {"load_fraction": 0.3, "mode_omega_max": 1.0 / 2e-4, "softness": 0.05}},
-        family="backlash"),
+        family="backlash", fast_dynamics=True),
     Effect(
         "backlash_output",
         "play of total 2δ between each screw's nut and its carriage: after a reversal the screw turns "
@@ -371,7 +380,7 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (
         extra_states={"htls": ("nut_play_b1", "nut_play_b2"), "lths": ("nut_play_b1", "nut_play_b2")},
         state_scales={"nut_play_b1": 0.1, "nut_play_b2": 0.1},  # travel inside the play [screw rad]
         constants={"htls": {"relaxation": 2e-3, "softness": 0.05}, "lths": {"relaxation": 1e-3, "softness": 0.05}},
-        family="backlash"),
+        family="backlash", fast_dynamics=True),
     Effect(
         "torque_ripple_harmonics",
         "motor torque ripple with its 2nd and 3rd harmonic: k_n A (sin(n_p θ + φ1) + h2 sin(2 n_p θ + φ2) "
@@ -391,7 +400,7 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (
              "torque_ripple_harmonics_ratio3": 0.0, "torque_ripple_harmonics_phase3": 0.0},
         signature=("periodic", "low_speed"), magnitude="torque_ripple_harmonics_amplitude",
         constants={"htls": {"periods": 6.0}, "lths": {"periods": 4.0}},  # fundamental periods per motor revolution
-        family="torque_ripple"),
+        family="torque_ripple", fast_dynamics=True),
     Effect(
         "ujoint_stations",
         "exact U-joint speed factor of eq. 8 with a ripple scale and a yoke phase per station: two "

@@ -83,7 +83,7 @@ def loss_factors(c) -> dict[str, float]:
 MODEL = Model(
     name="htls", model_id=KERNEL_IDS["htls"][0], title="HT/LS (high torque / low speed)",
     states=STATES, outputs=OUTPUTS, output_units=OUTPUT_UNITS,
-    parameters=PARAMETERS, constants=CONSTANTS, derive=derived_constants, integration_step=5e-4,
+    parameters=PARAMETERS, constants=CONSTANTS, derive=derived_constants, integration_step=5e-4, converged_step=1e-3,
     integrator="rk4", rtol=5e-8, state_scales=(30.0, 0.3, 0.3, 500.0),  # Omega, y1, y2, theta
     sensor_sets={"full": OUTPUTS, "realistic": ("Omega", "y1", "y2", "I_A")}, loss_referral=loss_factors,
     effect_catalogue=CATALOGUE, augment=augment_ema,  # effects: the hooks of effect_kernels in evaluate

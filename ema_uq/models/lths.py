@@ -90,7 +90,7 @@ def loss_factors(c) -> dict[str, float]:
 MODEL = Model(
     name="lths", model_id=KERNEL_IDS["lths"][0], title="LT/HS (low torque / high speed)",
     states=STATES, outputs=OUTPUTS, output_units=OUTPUT_UNITS,
-    parameters=PARAMETERS, constants=CONSTANTS, derive=derived_constants, integration_step=2e-4,
+    parameters=PARAMETERS, constants=CONSTANTS, derive=derived_constants, integration_step=2e-4, converged_step=5e-4,
     integrator="rk4", rtol=2e-8, state_scales=(30.0, 900.0, 0.3, 0.3, 1000.0),  # I_A, Omega, y1, y2, theta
     sensor_sets={"full": OUTPUTS, "realistic": ("Omega", "y1", "y2", "I_A", "U_A")}, loss_referral=loss_factors,
     effect_catalogue=CATALOGUE, augment=augment_ema,  # effects: the hooks of effect_kernels in evaluate

@@ -67,7 +67,7 @@ def _run_shared(kernel, args, out, n_samples):
 
 def substeps(model: Model, dt: float, step: float | None = None) -> tuple[int, float]:
     """Number of RK4 sub-steps per sample interval and the resulting step length [s]."""
-    step = model.integration_step if step is None else float(step)
+    step = model.rk4_step if step is None else float(step)
     if not step > 0:
         raise SimulationError(f"integration step must be positive, got {step}")
     n_sub = max(1, int(np.ceil(dt / step - 1e-9)))

@@ -8,6 +8,7 @@ full blind self-check against its targets.
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -16,8 +17,10 @@ from ema_uq import get_model, io, simulate_batch, synthesize
 from ema_uq.cli import main
 from ema_uq.experiments import add_noise, deploy_retract, validation
 from ema_uq.gap import GapError, GapResult, ResidualRecord, diagnose, localize, split_holdout, systematic_nrmse
-from ema_uq.gap.localize import LAG_NORM, LAG_WEIGHTS, lag_products
 from ema_uq.gap import selfcheck
+from ema_uq.gap.allowance import actuator_allowance
+from ema_uq.gap.localize import LAG_NORM, LAG_WEIGHTS, lag_products
+from ema_uq.gap.strategy import DiagnosisSettings
 from ema_uq.gap.variants import VARIANTS, make_records
 from ema_uq.identify import FitProblem, IdentificationError
 
@@ -367,6 +370,26 @@ def none_result():
     return diagnose([est], candidates=CANDIDATES, seed=41)     # held out: last 30 %
 
 
+def test_the_contract_step_covers_the_nominal_dynamics_and_effects_without_their_own():
+    htls = get_model("htls")
+    coarse = replace(htls, at_converged_step=True)
+    assert htls.rk4_step == htls.integration_step == 5e-4 and coarse.rk4_step == htls.converged_step == 1e-3
+    # friction laws, an output delay and kinematic ripple at screw-angle order add no faster dynamics
+    for name in ("stribeck", "load_dependent_friction", "sensor_delay", "ujoint_kinematics"):
+        assert coarse.with_effects([name]).rk4_step == 1e-3, name
+    # a mode, a play's relaxation and a ripple at motor-angle order keep the fine step, also in compounds
+    for names in (["shaft_compliance"], ["backlash"], ["torque_ripple"], ["stribeck", "backlash_output"]):
+        assert coarse.with_effects(names).rk4_step == 5e-4, names
+    # the model-form allowance's wrapper simulates its inner model at the same step
+    wrapped = actuator_allowance(coarse).wrap(coarse).with_effects(["stribeck"])
+    assert wrapped.rk4_step == wrapped.inner.rk4_step == 1e-3
+    # a concept without a contract step keeps its own
+    cranfield = replace(get_model("cranfield"), at_converged_step=True)
+    assert cranfield.converged_step is None and cranfield.rk4_step == cranfield.integration_step
+    with pytest.raises(ValueError, match="converged_step must be true or false"):
+        DiagnosisSettings(converged_step="yes")
+
+
 def test_effect_is_found_with_its_size(effect_result):
     r = effect_result
     assert r.verdict == "effect" and r.effect == "load_dependent_friction" and r.confidence == "high"
@@ -433,6 +456,8 @@ def test_gap_json_contract_and_round_trip(effect_result, tmp_path):
         assert row["shrink"] == pytest.approx(1 - row["gap_after"] / row["gap_before"])
     assert set(data["where"]) == {"channels", "regimes"}
     assert {"shrink", "shrink_se", "shrink_record"} <= set(data["gap"])
+    # method version 3 ran every model at the contract's converged step
+    assert data["nominal"]["integration_step_s"] == get_model("htls").converged_step
     path = tmp_path / "gap.json"
     io.write_json(path, data)
     back = GapResult.from_json(json.loads(path.read_text()))

@@ -297,6 +297,21 @@ def test_batch_equals_single_bit_for_bit(concept, experiment):
 
 
 @pytest.mark.parametrize("concept", ["htls", "lths"])
+def test_the_contract_step_stays_far_under_the_noise(concept, experiment):
+    """``converged_step`` (the model contract's RK4 step, which the gap diagnosis fits at) moves
+    no output by more than 5e-5 of its range: under 1/400 of the 2 % noise."""
+    model = get_model(concept)
+    assert model.integration_step < model.converged_step
+    fine, contract = (simulate_batch(model, model.parameters.nominal, experiment.time, experiment.input_matrix(),
+                                     integrator="rk4", step=step)
+                      for step in (model.integration_step, model.converged_step))
+    span = np.ptp(fine, axis=0)
+    err = np.max(np.abs(contract - fine), axis=0) / span
+    assert err.max() < 5e-5, f"{concept}: the contract step changes {model.outputs[int(np.argmax(err))]} by {err.max():.2e}"
+    assert err.max() > 0.0                       # the two steps really ran
+
+
+@pytest.mark.parametrize("concept", ["htls", "lths"])
 def test_halving_the_step_changes_little(concept, experiment):
     """The fixed-step RK4 alternative at its converged step."""
     model = get_model(concept)

@@ -255,6 +255,16 @@ def test_the_committed_protocol_fixes_catalogue_thresholds_and_blocks():
     assert protocol["selfcheck"]["none_per_set"] * 4 >= 60
 
 
+def test_a_protocol_runs_the_method_version_it_was_frozen_for():
+    bench = _bench()
+    version1 = bench.protocol_settings({"settings": {"max_effects": 1}})
+    version2 = bench.protocol_settings({"settings": {"max_effects": 1, "model_form_allowance": True}})
+    version3 = bench.protocol_settings({"settings": {"model_form_allowance": True, "converged_step": True}})
+    assert (version1.model_form_allowance, version1.converged_step) == (False, False)
+    assert (version2.model_form_allowance, version2.converged_step) == (True, False)
+    assert (version3.model_form_allowance, version3.converged_step) == (True, True)
+
+
 def test_protocol_blocks_run_resume_and_print_side_by_side(tmp_path, monkeypatch, capsys):
     bench = _bench()
     calls = []
