@@ -464,10 +464,10 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=DEFAULT_SEED)
     parser.add_argument("--peer", action="store_true", help="also run the former circular self-check")
     parser.add_argument("--out", metavar="JSON", help="write scores and per-case table as JSON")
-    parser.add_argument("--method-version", type=int, choices=(1, 2, 3), default=3,
-                        help="3 (default): 2 and every model integrated at the model contract's converged step; 2: "
-                             "fit the model-form allowance (kinematic tolerance, command lag) in every model at the "
-                             "model's own step; 1: the method without the allowance")
+    parser.add_argument("--method-version", type=int, choices=(1, 2, 3), default=2,
+                        help="2 (default): fit the model-form allowance (kinematic tolerance, command lag) in every "
+                             "model; 1: the method without it; 3: 2 at the model contract's converged step where no "
+                             "effect brings faster dynamics (tried, not adopted)")
     args = parser.parse_args()
 
     concepts = ["htls", "lths"] if args.concept == "both" else [args.concept]

@@ -147,7 +147,7 @@ def test_a_version_1_protocol_runs_without_the_allowance(tmp_path):
     assert bench.protocol_settings(v1) == DiagnosisSettings(model_form_allowance=False, converged_step=False)
     # a protocol frozen now records the setting, and runs with it
     frozen = bench.freeze(tmp_path / "protocol.yaml", development=[11], evaluation=[5201])
-    assert frozen["settings"]["model_form_allowance"] is True and frozen["settings"]["converged_step"] is True
+    assert frozen["settings"]["model_form_allowance"] is True and frozen["settings"]["converged_step"] is False
     assert bench.protocol_settings(frozen) == DiagnosisSettings()
 
 

@@ -456,8 +456,8 @@ def test_gap_json_contract_and_round_trip(effect_result, tmp_path):
         assert row["shrink"] == pytest.approx(1 - row["gap_after"] / row["gap_before"])
     assert set(data["where"]) == {"channels", "regimes"}
     assert {"shrink", "shrink_se", "shrink_record"} <= set(data["gap"])
-    # method version 3 ran every model at the contract's converged step
-    assert data["nominal"]["integration_step_s"] == get_model("htls").converged_step
+    # the default (method version 2) runs at the model's own step, not the converged-step option's
+    assert data["nominal"]["integration_step_s"] == get_model("htls").integration_step
     path = tmp_path / "gap.json"
     io.write_json(path, data)
     back = GapResult.from_json(json.loads(path.read_text()))
