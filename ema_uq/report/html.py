@@ -31,20 +31,27 @@ from .html_gap import _judged  # noqa: E402,F401
 TEMPLATE = "report/templates/report.html"
 
 
+def _gap_finding(gap: dict) -> str:
+    """One line of the summary: the gap verdict, its confidence and the effect's fitted parameters."""
+    what = {"effect": f"effect <b>{html.escape(_effect_name(gap))}</b>", "none": "no significant gap",
+            "unexplained": "unexplained gap",
+            "ambiguous": "ambiguous between " + html.escape(" / ".join(
+                c["family"] for c in gap.get("contenders") or []))}.get(gap["verdict"],
+                                                                       html.escape(str(gap["verdict"])))
+    conf = f", {html.escape(str(gap['confidence']))} confidence" if gap.get("confidence") else ""
+    # a dimensionless unit ("1") is not written after the number
+    params = "; ".join(f"{html.escape(n)} = {_pm(v.get('estimate'), v.get('std'))}"
+                       + ("" if str(v.get("unit", "")) in ("", "1") else f" {html.escape(str(v['unit']))}")
+                       for n, v in (gap.get("effect_parameters") or {}).items())
+    return f"Sim-to-real gap: {what}{conf}" + (f" ({params})" if params else "") + "."
+
+
 def _summary_section(study: dict, results: Path, fits: dict) -> str:
     """The findings of every stage in a few lines: verdicts, estimates, convergence, Sobol."""
     items = []
     gap = _read(results, "gap.json")
     if gap:
-        what = {"effect": f"effect <b>{html.escape(_effect_name(gap))}</b>", "none": "no significant gap",
-                "unexplained": "unexplained gap",
-                "ambiguous": "ambiguous between " + html.escape(" / ".join(
-                    c["family"] for c in gap.get("contenders") or []))}.get(gap["verdict"],
-                                                                           html.escape(str(gap["verdict"])))
-        conf = f", {html.escape(str(gap['confidence']))} confidence" if gap.get("confidence") else ""
-        params = "; ".join(f"{html.escape(n)} = {_pm(v.get('estimate'), v.get('std'))} "
-                           f"{html.escape(str(v.get('unit', '')))}" for n, v in (gap.get("effect_parameters") or {}).items())
-        items.append(f"Sim-to-real gap: {what}{conf}" + (f" ({params})" if params else "") + ".")
+        items.append(_gap_finding(gap))
     faults = _read(results, "faults.json")
     if faults:
         rows = faults["diagnoses"]

@@ -1,7 +1,7 @@
 """Numbers in the report: digits from the uncertainty, targets judged on their interval."""
 import pytest
 
-from ema_uq.report.html import _at, _judged, _pm
+from ema_uq.report.html import _at, _gap_finding, _judged, _pm
 
 
 @pytest.mark.parametrize("x,sigma,text", [
@@ -24,3 +24,12 @@ def test_a_target_is_judged_only_when_the_interval_is_on_one_side():
     assert "not shown" in _judged(0.025, 1.0, 0.9, "≥")          # 1 of 1 right: cannot show >= 0.9
     assert ">met<" in _judged(0.92, 1.0, 0.9, "≥") and "NOT met" in _judged(0.1, 0.6, 0.9, "≥")
     assert ">met<" in _judged(0.0, 0.049, 0.05, "≤") and "not shown" in _judged(0.0, 0.3, 0.05, "≤")
+
+
+def test_the_gap_finding_writes_units_but_not_a_dimensionless_one():
+    gap = {"verdict": "effect", "effect": "stribeck", "family": "stribeck", "confidence": "high",
+           "effect_parameters": {"stribeck_ratio": {"estimate": 0.4994, "std": 0.0037, "unit": "1"},
+                                 "stribeck_speed": {"estimate": 1.0006, "std": 0.008, "unit": "rad/s"}}}
+    text = _gap_finding(gap)
+    assert "stribeck_ratio = 0.4994 ± 0.0037;" in text
+    assert "stribeck_speed = 1.0006 ± 0.0080 rad/s" in text and "high confidence" in text
