@@ -8,7 +8,8 @@ Four candidates: stribeck, sensor_delay, shaft_compliance, load_dependent_fricti
 Columns, measured in this run on this machine, one numba and one BLAS thread (the share of one
 self-check worker): the method without the model-form allowance (version 1), with it
 (version 2, the default) and with it at the model contract's converged RK4 step where no effect
-brings faster dynamics (version 3: the ``converged_step`` option, tried and not adopted). Beside them the figures the performance issue recorded before the
+brings faster dynamics (version 3: the ``converged_step`` option, tried and not adopted).
+Beside them the figures the performance issue recorded before the
 work (HT/LS: 92 s, 636 simulations, on the code of that time) and its targets (HT/LS <= 20 s,
 LT/HS <= 45 s on one core). A warm-up diagnosis on a short record runs first so kernel
 compilation and cache loading are excluded.

@@ -42,11 +42,12 @@ class DiagnosisSettings:
     ``model_form_allowance``: fit the strategy's model-form allowance (kinematic tolerance and
     command lag, :mod:`ema_uq.gap.allowance`) in the nominal model and in every candidate alike
     (from method version 2 on, the default; False with ``converged_step`` False reproduces
-    method version 1, which treats the kinematics and the command as exact); ``converged_step``: an option, off by default (tried as a
-    method version 3 and not adopted, docs/gap-diagnosis.md): every fit and prediction runs RK4
-    at the model's ``converged_step`` (the model contract's step, converged well under the
-    noise: HT/LS 1 ms, LT/HS 0.5 ms) instead of its finer ``integration_step``, but for models
-    with an effect of faster dynamics (``Model.rk4_step``).
+    method version 1, which treats the kinematics and the command as exact);
+    ``converged_step``: an option, off by default (tried as a method version 3 and not
+    adopted, docs/gap-diagnosis.md): every fit and prediction runs RK4 at the model's
+    ``converged_step`` (the model contract's step, converged well under the noise: HT/LS 1 ms,
+    LT/HS 0.5 ms) instead of its finer ``integration_step``, but for models with an effect of
+    faster dynamics (``Model.rk4_step``).
     """
 
     holdout_fraction: float = 0.3

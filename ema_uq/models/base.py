@@ -54,10 +54,10 @@ class Model:
         (docs/MODEL_SPEC.md: HT/LS 1 ms, LT/HS 0.5 ms) for the nominal dynamics; None: none stated.
     at_converged_step : integrate by RK4 at ``converged_step`` (see :attr:`rk4_step`), for
         campaigns of many fits where an output error of ~1e-5 of its range is immaterial (the gap
-        diagnosis, method version 3). Augmented models inherit the flag.
+        diagnosis's ``converged_step`` option). Augmented models inherit the flag.
     integrator : "dopri5" (adaptive Dormand-Prince 5(4), tolerance ``rtol``, absolute
         tolerance ``rtol * state_scales``), "hybrid" (exact steps over the sample intervals
-        where the concept is linear, "dopri5" elsewhere) or "rk4" (fixed ``integration_step``).
+        where the concept is linear, "dopri5" elsewhere) or "rk4" (fixed :attr:`rk4_step`).
     state_scales : typical magnitude of each state (state units), the adaptive error scale.
     derive : constants computed once per simulation from ``constants`` (appended in kernel order).
     sensor_sets : named sets of output channels, e.g. ``"full"`` (every output) and
