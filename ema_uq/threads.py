@@ -9,7 +9,9 @@ on 2 cores, two HT/LS gap diagnoses at once: 20.6 s each with default threads, 1
 BLAS thread, 12.6 s with one numba thread as well; one diagnosis alone, one thread: 12.2 s).
 
 * :func:`single_threaded_worker` is the initializer of a worker process of a pool that already
-  runs one worker per core.
+  runs one worker per core. The worker also ends itself when the process that started it is
+  gone: a parent stopped by a signal (a cancelled workflow job, a killed script) runs no clean-up,
+  and its workers would otherwise go on diagnosing cases whose outcomes nobody will store.
 * :func:`follow_scheduler_threads` is called by the command line before anything imports numba:
   a scheduler that gives a job its threads says so in ``OMP_NUM_THREADS`` (Snakemake sets it for
   every job to the rule's ``threads``; SLURM job scripts usually do), and numba is told the same
@@ -23,6 +25,7 @@ of the machine's core count.
 from __future__ import annotations
 
 import os
+import threading
 from typing import MutableMapping
 
 _limits = None      # the BLAS thread limit of this worker, kept alive for the worker's lifetime
@@ -36,6 +39,20 @@ def single_threaded_worker() -> None:
 
     numba.set_num_threads(1)
     _limits = threadpool_limits(limits=1, user_api="blas")
+    threading.Thread(target=_exit_with_parent, name="exit-with-parent", daemon=True).start()
+
+
+def _exit_with_parent() -> None:
+    """Block until the process that started this one ends, then end this one at once (no clean-up:
+    a worker holds nothing that must be saved; only the parent writes results)."""
+    from multiprocessing import parent_process
+    from multiprocessing.connection import wait
+
+    parent = parent_process()
+    if parent is None:          # not a multiprocessing child: nothing to follow
+        return
+    wait([parent.sentinel])
+    os._exit(1)
 
 
 def follow_scheduler_threads(environ: MutableMapping[str, str] | None = None) -> int | None:

@@ -48,3 +48,56 @@ def test_the_command_line_gives_numba_the_jobs_share(tmp_path):
     done = subprocess.run([sys.executable, "-c", script], env=environ, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr
     assert "numba threads 1" in done.stdout
+
+
+_ORPHANED_POOL = """
+import os, sys, time
+from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import get_context
+from ema_uq.threads import single_threaded_worker
+
+if __name__ == "__main__":
+    pool = ProcessPoolExecutor(1, mp_context=get_context("spawn"), initializer=single_threaded_worker)
+    print(pool.submit(os.getpid).result(), flush=True)
+    pool.submit(time.sleep, 300)
+    time.sleep(300)
+"""
+
+
+def _running(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            return stat.read().rsplit(")", 1)[1].split()[0] not in ("Z", "X")
+    except FileNotFoundError:
+        return False
+
+
+def test_a_pool_worker_ends_when_its_parent_is_killed(tmp_path):
+    """A parent stopped by SIGTERM runs no clean-up; its busy worker must still end (not diagnose on)."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    import pytest
+
+    if not os.path.isdir("/proc/self"):
+        pytest.skip("needs /proc to see whether the worker still runs")
+    script = tmp_path / "orphaned_pool.py"
+    script.write_text(_ORPHANED_POOL)
+    parent = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True,
+                              env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
+    worker = None
+    try:
+        worker = int(parent.stdout.readline())
+        assert _running(worker)
+        parent.send_signal(signal.SIGTERM)
+        parent.wait(timeout=30)
+        deadline = time.monotonic() + 20
+        while _running(worker) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not _running(worker), "the worker went on after its parent was killed"
+    finally:
+        parent.kill()
+        if worker is not None and _running(worker):
+            os.kill(worker, signal.SIGKILL)
