@@ -13,7 +13,7 @@ from importlib import resources
 
 from snakemake.utils import validate
 
-from ema_uq.io import CRANFIELD_FILES, cranfield_file, emps_files
+from ema_uq.io import CRANFIELD_HEALTHY, cranfield_file, cranfield_record_sets, emps_files
 from ema_uq.study import DATA_ROLES, load_study, settings_for
 
 configfile: "config/config.yaml"
@@ -46,8 +46,7 @@ def _load(name):
         print(f"study {name}: EMPS data files not found (data.path or EMA_UQ_EMPS_DIR); study skipped",
               file=sys.stderr)
         return None
-    if study["concept"] == "cranfield" and not all(cranfield_file(f, study, must_exist=False).is_file()
-                                                   for f in CRANFIELD_FILES):
+    if study["concept"] == "cranfield" and not cranfield_file(CRANFIELD_HEALTHY, study, must_exist=False).is_file():
         print(f"study {name}: Cranfield record sets not found (data.path or EMA_UQ_CRANFIELD_DIR); study skipped",
               file=sys.stderr)
         return None
@@ -374,7 +373,8 @@ rule gap_selfcheck:
 
 rule fault_diagnosis:
     input:
-        lambda w: [str(cranfield_file(f, study(w))) for f in CRANFIELD_FILES],
+        # every record set of the data folder (or the study's data.record_sets): a set added there is diagnosed
+        lambda w: [str(cranfield_file(f, study(w))) for f in cranfield_record_sets(study(w))],
         compiled=ancient(COMPILED),
     output:
         "results/{study}/faults.json",

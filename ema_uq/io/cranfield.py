@@ -22,6 +22,8 @@ CRANFIELD_DIR_ENV = "EMA_UQ_CRANFIELD_DIR"
 DEFAULT_CRANFIELD_DIR = "../shared/data/real/cranfield_linear_actuator"
 #: The record sets of the rig: the healthy one and the seeded faults (file stems).
 CRANFIELD_FILES = ("normal", "backlash1", "backlash2", "lackLubrication1", "lackLubrication2")
+#: The healthy record set, the one the rig model is fitted on (file stem).
+CRANFIELD_HEALTHY = "normal"
 _CRANFIELD_COLUMNS = ("set_point", "position_error", "current", "load", "run", "group", "time")
 #: Channels :func:`read_cranfield` can return (``position`` = set point - position error).
 CRANFIELD_CHANNELS = ("position", "position_error", "current")
@@ -49,6 +51,41 @@ def cranfield_file(name: str, study: Mapping[str, Any] | None = None, *, must_ex
         raise DataFileError(f"file {path}: Cranfield record set not found; set {CRANFIELD_DIR_ENV} or the study key "
                             f"data.path to the folder holding {', '.join(f + '.csv' for f in CRANFIELD_FILES)}")
     return path
+
+
+def cranfield_record_sets(study: Mapping[str, Any] | None = None) -> list[str]:
+    """The record sets a fault diagnosis of the rig reads (file stems, the healthy one first):
+    the study's ``data.record_sets`` when given (each must exist), else every ``.csv`` file of the
+    data folder (so a record set added to the folder is diagnosed without naming it anywhere),
+    the rig's known sets in :data:`CRANFIELD_FILES` order, then the others in natural order
+    (``spalling2`` before ``spalling10``). Without a data folder: :data:`CRANFIELD_FILES`
+    (nothing is read; the caller reports the missing files). The healthy set must be there."""
+    import re
+
+    folder = cranfield_data_dir(study)
+    given = ((study or {}).get("data") or {}).get("record_sets")
+    if given:
+        names = [n[:-4] if str(n).lower().endswith(".csv") else str(n) for n in given]
+        for name in names:
+            cranfield_file(name, study)
+        names = [CRANFIELD_HEALTHY] + [n for n in dict.fromkeys(names) if n != CRANFIELD_HEALTHY]
+    elif not folder.is_dir():
+        return list(CRANFIELD_FILES)
+    else:
+        found = sorted(p.stem for p in folder.glob("*.csv") if p.is_file())
+        natural = sorted((n for n in found if n not in CRANFIELD_FILES),
+                         key=lambda n: [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", n)])
+        names = [n for n in CRANFIELD_FILES if n in found] + natural
+    if CRANFIELD_HEALTHY not in names:
+        raise DataFileError(f"folder {folder}: no {CRANFIELD_HEALTHY}.csv; the fault diagnosis fits the rig on its "
+                            f"healthy records first: put {CRANFIELD_HEALTHY}.csv beside the record sets")
+    return names
+
+
+def cranfield_runs(path: str | os.PathLike) -> list[int]:
+    """The run numbers a record set holds (sorted)."""
+    table = _cranfield_table(Path(path))
+    return sorted({int(r) for r in table["run"].tolist()})
 
 
 def _cranfield_table(path: Path) -> dict[str, np.ndarray]:

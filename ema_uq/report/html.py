@@ -55,9 +55,12 @@ def _summary_section(study: dict, results: Path, fits: dict) -> str:
     faults = _read(results, "faults.json")
     if faults:
         rows = faults["diagnoses"]
-        right = sum(_fault_label(r) == faults["expected"].get(r["record_set"]) for r in rows)
-        items.append(f"Fault diagnosis of measured records against the healthy fit: {right} of {len(rows)} record "
-                     "sets as expected (" + ", ".join(f"{html.escape(r['record_set'])} → "
+        labelled = [r for r in rows if r["record_set"] in faults["expected"]]
+        right = sum(_fault_label(r) == faults["expected"][r["record_set"]] for r in labelled)
+        unlabelled = len(rows) - len(labelled)
+        items.append(f"Fault diagnosis of measured records against the healthy fit: {right} of {len(labelled)} record "
+                     "sets of known fault as expected" + (f", {unlabelled} of no known fault" if unlabelled else "")
+                     + " (" + ", ".join(f"{html.escape(r['record_set'])} → "
                                                       f"{html.escape(_fault_label(r))}" for r in rows) + ").")
     ident = _read(results, "ident.json")
     if ident:

@@ -229,8 +229,9 @@ def _faults_section(results: Path) -> str:
              "candidate closes, which the verdict requires to be at least one half.</p>"]
     rows = []
     for r in faults["diagnoses"]:
-        label, expected = _fault_label(r), faults["expected"].get(r["record_set"], "?")
-        mark = "" if label == expected else ' <span class="flag">≠ expected</span>'
+        label, expected = _fault_label(r), faults["expected"].get(r["record_set"])
+        mark = "" if expected is None or label == expected else ' <span class="flag">≠ expected</span>'
+        expected = "no known fault" if expected is None else expected
         shrink = "–" if r.get("shrink") is None else _pm(r["shrink"], r.get("shrink_se"), 2)
         params = "; ".join(f"{html.escape(n)} = {_pm(p.get('estimate'), p.get('std'))} "
                            f"{html.escape(str(p.get('unit', '')))}" for n, p in

@@ -57,6 +57,7 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from . import Rig
+from ..errors import EmaUqError
 from ..experiments import Measurement
 from ..gap.localize import RegimeRms, lag_products
 from ..gap.strategy import DiagnosisSettings, DiagnosisStrategy, Thresholds
@@ -399,7 +400,8 @@ class CranfieldStudy:
                 lines.append(f"        {name:<30} = {p['estimate']:.4g} +/- {p['std']:.2g} {p.get('unit', '')}")
             lines.extend(f"        {line}" for line in _why_lines(row))
         lines.append("    reproducible: share of the selection blocks' gap a replicate mean of the estimation runs "
-                     "closes; closed: share of that the best candidate closes (the verdict's shrink test)")
+                     "closes; closed: share of that the best candidate closes (the verdict's shrink test); "
+                     "expected ?: no known seeded fault")
         lines.append(f"    wall time {self.wall_time_s:.0f} s")
         return "\n".join(lines)
 
@@ -475,14 +477,18 @@ EXPECTED = {"normal": "none", "backlash1": "backlash", "backlash2": "backlash",
 def run_study(read: Callable[[str, Sequence[int]], list[Measurement]], *, fit_runs: Sequence[int] = (1, 2, 3, 4, 5),
               healthy_held_out_runs: Sequence[int] = (6, 7, 8, 9, 10), estimation_runs: Sequence[int] = (1, 2, 3, 4, 5),
               held_out_runs: Sequence[int] = (6, 7, 8, 9, 10), record_sets: Sequence[str] = tuple(EXPECTED),
-              seed: int = 0, replicates: bool = True, progress: Callable[[str], None] | None = None) -> CranfieldStudy:
+              seed: int = 0, replicates: bool = True, progress: Callable[[str], None] | None = None,
+              runs_of: Callable[[str], Sequence[int]] | None = None) -> CranfieldStudy:
     """Fit on the healthy runs ``fit_runs`` of ``normal``, then diagnose each record set.
 
     ``read(record_set, runs)`` returns the blocks of those runs (every load). The first two
     ``healthy_held_out_runs`` give the gap metric's healthy baseline and, for the ``normal``
     diagnosis, fit the effect parameters; the others are the held-out healthy records of that
     diagnosis. The faulted sets fit effect parameters on ``estimation_runs`` and are judged on
-    ``held_out_runs``. ``replicates`` False: the shrink test reads the whole gap, not its
+    ``held_out_runs``; with ``runs_of(record_set)`` (the runs a set holds) a set that lacks some
+    of those runs is split in its own runs instead (:func:`own_runs_split`). A set with no
+    known seeded fault (not in :data:`EXPECTED`) is diagnosed alike and left out of
+    ``expected``. ``replicates`` False: the shrink test reads the whole gap, not its
     reproducible part (:func:`cranfield_strategy`).
     """
     t0 = time.perf_counter()
@@ -496,12 +502,30 @@ def run_study(read: Callable[[str, Sequence[int]], list[Measurement]], *, fit_ru
         if name == "normal":
             estimation, held = baseline, healthy_rest
         else:
-            estimation, held = read(name, estimation_runs), read(name, held_out_runs)
+            fitted, judged = own_runs_split(name, runs_of(name) if runs_of else None, estimation_runs, held_out_runs)
+            estimation, held = read(name, fitted), read(name, judged)
         d = diagnose_record_set(reference, name, estimation, held, seed=seed)
         say(f"{name}: {d.row()['verdict']} {d.row()['effect'] or ''} ({d.result.wall_time_s:.1f} s)")
         diagnoses.append(d)
     return CranfieldStudy(reference, diagnoses, {k: EXPECTED[k] for k in record_sets if k in EXPECTED},
                           time.perf_counter() - t0)
+
+
+def own_runs_split(name: str, held: Sequence[int] | None, estimation_runs: Sequence[int],
+                   held_out_runs: Sequence[int]) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """(estimation runs, held-out runs) of record set ``name`` holding the runs ``held`` (None:
+    not known, the runs asked for are used): the runs asked for when it holds them all, else
+    its own runs in halves, the earlier half fitted (a set recorded with fewer or other runs).
+    A set of one run cannot be split into runs that choose an effect and runs that judge it."""
+    asked = tuple(int(r) for r in estimation_runs), tuple(int(r) for r in held_out_runs)
+    if held is None or set(asked[0] + asked[1]) <= set(held):
+        return asked
+    runs = sorted({int(r) for r in held})
+    if len(runs) < 2:
+        raise EmaUqError(f"record set {name} holds {len(runs)} run(s); the diagnosis needs at least two, one to fit "
+                         "the effect and one to judge it on")
+    half = (len(runs) + 1) // 2
+    return tuple(runs[:half]), tuple(runs[half:])
 
 
 def run_splits(n_runs: int = 10) -> dict[str, tuple[tuple[int, ...], ...]]:
@@ -547,7 +571,7 @@ def _runs_label(runs: Sequence[int]) -> str:
 def _data_files(study: Mapping[str, Any]) -> list[tuple[str, Path]]:
     from .. import io
 
-    files = [io.cranfield_file(name, study, must_exist=False) for name in io.CRANFIELD_FILES]
+    files = [io.cranfield_file(name, study, must_exist=False) for name in io.cranfield_record_sets(study)]
     return [(f"{f.name} (measured)", f) for f in files]
 
 

@@ -612,3 +612,64 @@ def test_fault_diagnosis_verb_names_the_missing_data_folder(capsys, monkeypatch,
     assert main(["fault-diagnosis", "--study", "studies/cranfield.yaml", "--out", str(tmp_path / "f.json")]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "EMA_UQ_CRANFIELD_DIR" in err and not (tmp_path / "f.json").exists()
+
+
+# --------------------------------------------------------------------------------------
+# record sets the project has never seen: found in the data folder, split in their own runs
+# --------------------------------------------------------------------------------------
+def _write_record_set(path, model, runs, seed_key) -> None:
+    """A record set in the rig's file layout, simulated with the rig's noise (``_simulated_blocks``)."""
+    header = "set_point,position_error,current,profile,load,run,fault_type,group,time"
+    lines = [header]
+    for m in _simulated_blocks(model, path.stem, runs, seed_key):
+        set_point = m.experiment.inputs["x_sp"] * 1e3
+        for k in range(set_point.size):
+            lines.append(f"{set_point[k]:.6f},{m.values[k, 0] * 1e3:.6f},{m.values[k, 1]:.6f},trap,"
+                         f"{m.attrs['load_kgf']:g},{m.attrs['run']},0,{k // 324 + 1},{round((k % 324) * 0.04, 2)}")
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_record_sets_are_every_csv_of_the_folder_known_ones_first_then_in_natural_order(tmp_path, monkeypatch):
+    monkeypatch.delenv(io.CRANFIELD_DIR_ENV, raising=False)
+    for name in ("spalling10", "normal", "spalling2", "backlash1", "zz_other"):
+        (tmp_path / f"{name}.csv").write_text("x\n")
+    folder = {"data": {"path": str(tmp_path)}}
+    assert io.cranfield_record_sets(folder) == ["normal", "backlash1", "spalling2", "spalling10", "zz_other"]
+    chosen = {"data": {"path": str(tmp_path), "record_sets": ["spalling2.csv", "backlash1"]}}
+    assert io.cranfield_record_sets(chosen) == ["normal", "spalling2", "backlash1"]
+    with pytest.raises(io.DataFileError, match="spalling3.csv"):
+        io.cranfield_record_sets({"data": {"path": str(tmp_path), "record_sets": ["spalling3"]}})
+    (tmp_path / "normal.csv").unlink()
+    with pytest.raises(io.DataFileError, match="no normal.csv"):
+        io.cranfield_record_sets(folder)
+
+
+def test_a_set_without_the_asked_runs_is_split_in_its_own_runs():
+    asked = ((1, 2, 3, 4, 5), (6, 7, 8, 9, 10))
+    assert study.own_runs_split("s", range(1, 11), *asked) == asked
+    assert study.own_runs_split("s", None, *asked) == asked
+    assert study.own_runs_split("s", [1, 2, 3, 4], *asked) == ((1, 2), (3, 4))
+    assert study.own_runs_split("s", [3, 4, 5, 6, 7], *asked) == ((3, 4, 5), (6, 7))
+    with pytest.raises(ValueError, match="holds 1 run"):
+        study.own_runs_split("s", [4], *asked)
+
+
+def test_fault_diagnosis_verb_diagnoses_a_record_set_it_was_never_told_of(tmp_path, monkeypatch, capsys):
+    """A record set dropped into the data folder (fewer runs, a fault of no known label) is
+    diagnosed beside the healthy set, split in its own runs, and left out of the expected count."""
+    from ema_uq.cli import main
+
+    _write_record_set(tmp_path / "normal.csv", MODEL, range(1, 11), 1)
+    dragging = MODEL.with_effects(["seal_drag"], {"seal_drag_dC": 150.0})
+    _write_record_set(tmp_path / "mystery.csv", dragging, (1, 2, 3, 4), 7)
+    monkeypatch.setenv(io.CRANFIELD_DIR_ENV, str(tmp_path))
+    out = tmp_path / "faults.json"
+    assert main(["fault-diagnosis", "--study", "studies/cranfield.yaml", "--quiet", "--out", str(out)]) == 0
+    line = capsys.readouterr().out
+    assert "1 of 1 record sets of known fault as expected, 1 of no known fault" in line and "mystery" in line
+    data = io.read_json(out)
+    assert data["expected"] == {"normal": "none"}
+    mystery = data["diagnoses"][1]
+    assert mystery["record_set"] == "mystery" and mystery["effect"] == "seal_drag"
+    assert [b.split()[-1] for b in mystery["estimation_blocks"]] == ["1", "2"] * 3
+    assert sorted({b.split()[-1] for b in mystery["held_out_blocks"]}) == ["3", "4"]

@@ -77,14 +77,14 @@ SMOKE = ["--config", "studies=[smoke]"]
 
 
 def test_default_dry_run_plans_every_study(tmp_path):
-    from ema_uq.io import CRANFIELD_FILES, cranfield_file, emps_files
+    from ema_uq.io import CRANFIELD_HEALTHY, cranfield_file, emps_files
     from ema_uq.study import load_study
 
     workdir = copy_workflow(tmp_path)
     jobs = planned_jobs(snakemake(workdir, "-n"))
     emps = all(p.is_file() for p in emps_files(load_study(ROOT / "studies/emps.yaml"), must_exist=False).values())
     cranfield_study = load_study(ROOT / "studies/cranfield.yaml")
-    cranfield = all(cranfield_file(f, cranfield_study, must_exist=False).is_file() for f in CRANFIELD_FILES)
+    cranfield = cranfield_file(CRANFIELD_HEALTHY, cranfield_study, must_exist=False).is_file()
     synthetic, real = 2, int(emps)
     # per EMA study: estimation, validation and the two rig-like records; Sobol chunks from the studies
     assert jobs["simulate"] == 4 * synthetic, jobs
