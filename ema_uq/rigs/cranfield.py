@@ -72,7 +72,7 @@ from .cranfield_cycles import set_point_period  # noqa: F401 - still importable 
 #: the drive current
 CHANNELS = ("position_error", "current")
 START_S = 0.8          # a stroke start or stop and the loop's settling after it [s]
-SIGNIFICANT_Z = 3.0    # standard errors of the healthy spread an excess must pass to be a gap
+SIGNIFICANT_Z = 3.0    # the normal quantile of the error rate at which an excess is a gap (see ExcessNrmse)
 MAX_LAG = 60           # samples of the autocorrelation used for the thinning stride
 
 
@@ -94,6 +94,15 @@ def residuals(theta: np.ndarray, measurements: Sequence[Measurement], model=None
         simulated = simulate_batch(model, theta, m.time, m.experiment.input_matrix(model))
         out.append(m.select(CHANNELS).values - simulated[:, index])
     return out
+
+
+def student_threshold(z_normal: float, dof: int) -> float:
+    """The Student-t quantile, ``dof`` degrees of freedom, of the upper normal tail beyond
+    ``z_normal``: the threshold of a z whose standard error was estimated with ``dof`` degrees
+    of freedom, at the error rate the normal threshold means."""
+    from scipy import stats
+
+    return float(stats.t.isf(stats.norm.sf(z_normal), dof))
 
 
 def thinning_stride(residual_blocks: Sequence[np.ndarray], max_lag: int = MAX_LAG) -> int:
@@ -146,12 +155,17 @@ class ExcessNrmse:
     the sensor noise between test sessions is no gap) and ``base_c`` the same figure of the
     healthy fit on healthy blocks it did not see (the model's own error). So a gap in the
     position error (play at a reversal) counts as much as one in the current, each in units of
-    the healthy fit's own residual. Significant when the mean excess passes ``SIGNIFICANT_Z``
-    standard errors, sd / sqrt(blocks), of the block-to-block spread of the channel-mean excess
-    on those healthy blocks (``mean_spread_sd``; ``spread_sd`` per channel). ``per_channel`` reports the excess of every whitened channel under the name
-    of the measured one it leads with (the first is that channel alone, the second the part of
-    the second channel the first does not predict); ``channels``, ``base``, ``spread_sd``: (m,);
-    ``weights``: W (m, m)."""
+    the healthy fit's own residual. ``z`` is the mean excess over its standard error, and that
+    error counts both means it compares: sd sqrt(1 / blocks + 1 / healthy_blocks), sd the
+    block-to-block spread of the channel-mean excess on the ``healthy_blocks`` healthy blocks
+    (``mean_spread_sd``; ``spread_sd`` per channel), since the healthy level ``base`` is itself
+    a mean of a few blocks. Significant when ``z`` passes ``z_significant``: the Student-t
+    quantile, with healthy_blocks - 1 degrees of freedom, of the normal tail beyond
+    ``SIGNIFICANT_Z`` (an sd estimated from six blocks is no known sd: against the normal
+    quantile 3 a gap-free record set would pass 11 times too often, 1.5 % instead of 0.13 %).
+    ``per_channel`` reports the excess of every whitened channel under the name of the measured
+    one it leads with (the first is that channel alone, the second the part of the second channel
+    the first does not predict); ``channels``, ``base``, ``spread_sd``: (m,); ``weights``: W (m, m)."""
 
     channels: tuple[str, ...]
     weights: tuple[tuple[float, ...], ...]
@@ -161,16 +175,23 @@ class ExcessNrmse:
     description: str = ("held-out excess systematic NRMSE of the position error and the drive current, whitened by "
                         "the healthy fit's residual covariance, over the healthy fit on healthy records")
     z_significant: float = SIGNIFICANT_Z
+    healthy_blocks: int | None = None     # None: the healthy level taken as known (no error of its own)
 
     @classmethod
     def from_healthy(cls, residual_blocks: Sequence[np.ndarray], weights: np.ndarray,
                      channels: Sequence[str] = CHANNELS) -> "ExcessNrmse":
-        """From the healthy fit's residuals (each (n, m)) on healthy blocks it did not see and its
-        whitening ``weights`` (:func:`whitening` of its residual on the blocks it was fitted to)."""
+        """From the healthy fit's residuals (each (n, m)) on healthy blocks it did not see (at
+        least two: the spread needs one degree of freedom) and its whitening ``weights``
+        (:func:`whitening` of its residual on the blocks it was fitted to)."""
+        if len(residual_blocks) < 2:
+            raise EmaUqError(f"the gap metric's healthy level needs at least two healthy blocks, got "
+                             f"{len(residual_blocks)}; hold out more healthy runs")
         w = np.asarray(weights, dtype=float)
         per_block = np.array([np.nanmean(lag_products(r @ w.T), axis=0) for r in residual_blocks])
+        n = len(residual_blocks)
         return cls(tuple(channels), tuple(map(tuple, w)), tuple(per_block.mean(axis=0)),
-                   tuple(per_block.std(axis=0, ddof=1)), float(per_block.mean(axis=1).std(ddof=1)))
+                   tuple(per_block.std(axis=0, ddof=1)), float(per_block.mean(axis=1).std(ddof=1)),
+                   z_significant=student_threshold(SIGNIFICANT_Z, n - 1), healthy_blocks=n)
 
     def figures(self, records, measurements, model, channels, segments, spread) -> dict[str, Any]:
         if tuple(channels) != self.channels:
@@ -181,7 +202,8 @@ class ExcessNrmse:
         terms = np.column_stack([p, np.ones(p.shape[0])])
         excess = self._excess(terms.sum(axis=0))
         n_blocks = max(1, sum(1 for r in records if np.any(np.isfinite(r.residual))))
-        se = self.mean_spread_sd / math.sqrt(n_blocks)
+        level = 0.0 if self.healthy_blocks is None else 1.0 / self.healthy_blocks
+        se = self.mean_spread_sd * math.sqrt(1.0 / n_blocks + level)
         mean_excess = float(np.mean(terms[:, :-1].mean(axis=0) - np.asarray(self.base)))
         return {"gap": float(np.sqrt(np.mean(excess))), "z": mean_excess / se if se > 0 else float("nan"),
                 "factors": 0, "per_channel": dict(zip(self.channels, map(float, np.sqrt(excess)))),
@@ -195,7 +217,9 @@ class ExcessNrmse:
 
     def to_json(self) -> dict[str, Any]:
         return {"channels": list(self.channels), "weights": [list(r) for r in self.weights], "base": list(self.base),
-                "spread_sd": list(self.spread_sd), "mean_spread_sd": self.mean_spread_sd, "significant_z": self.z_significant}
+                "spread_sd": list(self.spread_sd), "mean_spread_sd": self.mean_spread_sd,
+                "significant_z": self.z_significant, "healthy_blocks": self.healthy_blocks,
+                "significant_z_normal": SIGNIFICANT_Z}
 
 
 # --------------------------------------------------------------------------------------

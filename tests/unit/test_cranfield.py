@@ -264,6 +264,28 @@ def test_gap_metric_sees_a_gap_in_the_position_error_alone():
     assert not quiet["significant"]
 
 
+def test_gap_free_record_sets_pass_for_a_gap_at_about_the_nominal_rate():
+    """The healthy level is a mean of six blocks with an estimated spread: the significance test
+    counts its error (Welch) and uses the Student-t quantile; as if the level and its spread were
+    known, white-noise record sets would pass for a gap 50 times the nominal 0.13 %."""
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    rng = np.random.default_rng(5)
+    noise = np.array([1e-4, 0.03])
+    weights = study.whitening([rng.normal(0.0, noise, (4000, 2))])
+    replicates, new, known = 1000, 0, 0
+    for _ in range(replicates):
+        metric = study.ExcessNrmse.from_healthy([rng.normal(0.0, noise, (400, 2)) for _ in range(6)], weights)
+        as_known = replace(metric, z_significant=study.SIGNIFICANT_Z, healthy_blocks=None)
+        held = [rng.normal(0.0, noise, (400, 2)) for _ in range(9)]
+        records = [SimpleNamespace(residual=e) for e in held]
+        new += metric.figures(records, None, None, CHANNELS, held, None)["significant"]
+        known += as_known.figures(records, None, None, CHANNELS, held, None)["significant"]
+    assert metric.healthy_blocks == 6 and metric.z_significant == pytest.approx(5.507, abs=1e-3)
+    assert new / replicates <= 0.006 and known / replicates >= 0.03
+
+
 # --------------------------------------------------------------------------------------
 # replicates: the cycle mean of the estimation residual
 # --------------------------------------------------------------------------------------
