@@ -380,8 +380,8 @@ rule fault_diagnosis:
         "results/{study}/faults.json",
     params:
         study_file=study_file,
-        # the stage reads the study's data section and seed itself
-        settings=lambda w: json.dumps({k: study(w).get(k) for k in ("data", "seed")}, sort_keys=True),
+        # the stage reads the study's data and gap sections and seed itself
+        settings=lambda w: json.dumps({k: study(w).get(k) for k in ("data", "seed", "gap")}, sort_keys=True),
     log:
         "results/{study}/logs/fault_diagnosis.log",
     benchmark:

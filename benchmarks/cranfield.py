@@ -24,7 +24,7 @@ import time
 import numpy as np
 
 from ema_uq import io
-from ema_uq.rigs.cranfield import CHANNELS, EXPECTED, run_splits, run_study
+from ema_uq.rigs.cranfield import CHANNELS, EXPECTED, run_split_study, run_study
 from ema_uq.models import get_model
 from ema_uq.models.cranfield import EFFECTS
 from ema_uq.simulate import simulate_batch
@@ -56,38 +56,6 @@ def simulator_timings() -> dict[str, float]:
     return out
 
 
-def split_table(read, splits: dict | None = None,
-                record_sets=tuple(EXPECTED)) -> tuple[list[dict], dict[str, dict[str, int]]]:
-    """Every split of ``splits`` (default :func:`ema_uq.rigs.cranfield.run_splits`): per record set
-    the verdict, the best candidate, its selection and reproducible shrink, the reproducible
-    share of the gap and the fitted play of the backlash candidate; and the verdict counts per
-    record set over the splits. ``right`` counts the sets of known seeded fault only."""
-    rows = []
-    counts: dict[str, dict[str, int]] = {name: {} for name in record_sets}
-    for label, (fit, healthy, estimation, held) in (splits or run_splits()).items():
-        study = run_study(read, fit_runs=fit, healthy_held_out_runs=healthy, estimation_runs=estimation,
-                          held_out_runs=held, record_sets=record_sets)
-        row = {"split": label, "fit_runs": list(fit), "held_out_runs": list(held), "right": 0, "sets": {}}
-        for d in study.diagnoses:
-            r, verdict = d.row(), study.verdict_of(d.record_set)
-            play = next((c for c in d.result.ranking if c.effect == "backlash"), None)
-            row["right"] += verdict == EXPECTED.get(d.record_set)
-            counts[d.record_set][verdict] = counts[d.record_set].get(verdict, 0) + 1
-            row["sets"][d.record_set] = {
-                "verdict": verdict, "best": r["best"], "runner_up": r["runner_up"],
-                "selection_shrink": r["selection_shrink"], "reproducible_shrink": r["reproducible_shrink"],
-                "reproducible_share": r["reproducible_share"],
-                "play_m": None if play is None else play.parameters["backlash_play"]["estimate"],
-                "play_std_m": None if play is None else play.parameters["backlash_play"]["std"],
-                "play_delta_bic": None if play is None else play.delta_bic,
-                "family_probabilities": r["family_probabilities"], "contenders": r["contenders"],
-                "verdict_reason": r["verdict_reason"], "where_left": r["where_left"]}
-        rows.append(row)
-        print(f"    {label:<22} {row['right']}/{sum(n in EXPECTED for n in record_sets)}  "
-              + "  ".join(f"{name}: {v['verdict']}" for name, v in row["sets"].items()), flush=True)
-    return rows, counts
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="reduced study (about 40 s instead of 60 s)")
@@ -107,22 +75,14 @@ def main() -> None:
         return io.read_cranfield(io.cranfield_file(name), runs=runs, channels=CHANNELS)
 
     if args.splits:
-        splits = run_splits()
-        # every record set of the folder that holds the ten runs the splits halve
-        found = io.cranfield_record_sets()
-        sets = [n for n in found if set(range(1, 11)) <= set(io.cranfield_runs(io.cranfield_file(n)))]
-        skipped = [n for n in found if n not in sets]
-        print(f"[[Run splits]] verdicts under {len(splits)} splits (fitted runs | held-out runs)"
-              + (f"; not split (they lack some of runs 1-10): {', '.join(skipped)}" if skipped else ""))
-        rows, counts = split_table(read, splits, tuple(sets))
-        print("[[Verdict counts]] per record set over the splits")
-        for name, c in counts.items():
-            print(f"    {name:<18} expected {EXPECTED.get(name, '?'):<18} "
-                  + ", ".join(f"{v} {n}" for v, n in sorted(c.items(), key=lambda kv: -kv[1])))
+        def runs_of(name):
+            return io.cranfield_runs(io.cranfield_file(name))
+
+        result = run_split_study(read, record_sets=io.cranfield_record_sets(), runs_of=runs_of)
+        print(result.summary())
         if args.out:
             with open(args.out, "w", encoding="utf-8") as fh:
-                json.dump({"simulator_s": timings, "family": "ema_uq.rigs.cranfield.run_splits", "n_splits": len(splits),
-                           "expected": EXPECTED, "counts": counts, "splits": rows}, fh, indent=2, default=float)
+                json.dump({"simulator_s": timings, **result.to_json()}, fh, indent=2, default=float)
         return
     splits = (dict(fit_runs=(1, 2, 3), healthy_held_out_runs=(6, 7, 8, 9), estimation_runs=(1, 2), held_out_runs=(3, 4))
               if args.quick else {})

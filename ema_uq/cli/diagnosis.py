@@ -188,6 +188,9 @@ def add_fault_diagnosis(subparsers) -> None:
                     "(base parameters held, only effect parameters fitted; shrink scored on runs not used to "
                     "select the effect). Data folder: the study's data.path or EMA_UQ_CRANFIELD_DIR.")
     add_study(p, "the data folder, channels and seed", required=True)
+    p.add_argument("--splits", choices=("none", "all"), default=None,
+                   help="all: also run the study under every leave-half-the-runs-out split of the ten runs and "
+                        "report each record set's verdict counts (default: the study's gap.fault_splits)")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     p.add_argument("--out", required=True, metavar="FAULTS.json")
     p.set_defaults(handler=_run_fault_diagnosis)
@@ -195,7 +198,7 @@ def add_fault_diagnosis(subparsers) -> None:
 
 def _run_fault_diagnosis(args: argparse.Namespace) -> str:
     from .. import io
-    from ..rigs.cranfield import CHANNELS, run_study
+    from ..rigs.cranfield import CHANNELS, run_split_study, run_study
     from ..rigs import rig_of
     from ..study import load_study
 
@@ -226,7 +229,18 @@ def _run_fault_diagnosis(args: argparse.Namespace) -> str:
     result = run_study(read, seed=int(study.get("seed", 0)), progress=None if args.quiet else progress,
                        record_sets=record_sets, runs_of=runs_of)
     payload = result.to_json()
-    payload["provenance"] = run_provenance(args, seed=int(study.get("seed", 0)), settings={"study": args.study})
+    splits = args.splits or (study.get("gap") or {}).get("fault_splits", "none")
+    split_line, wall = "", result.wall_time_s
+    if splits == "all":
+        table = run_split_study(read, record_sets=record_sets, runs_of=runs_of, seed=int(study.get("seed", 0)),
+                                progress=None if args.quiet else progress)
+        payload["splits"] = table.to_json()
+        normal = table.counts.get("normal", {})
+        split_line = (f"; over {len(table.rows)} run splits normal none in {normal.get('none', 0)} of "
+                      f"{sum(normal.values())}")
+        wall += table.wall_time_s
+    payload["provenance"] = run_provenance(args, seed=int(study.get("seed", 0)),
+                                           settings={"study": args.study, "splits": splits})
     io.write_json(args.out, payload)
     labelled = [d for d in result.diagnoses if d.record_set in result.expected]
     matches = sum(result.verdict_of(d.record_set) == result.expected[d.record_set] for d in labelled)
@@ -234,4 +248,4 @@ def _run_fault_diagnosis(args: argparse.Namespace) -> str:
     unlabelled = len(result.diagnoses) - len(labelled)
     return (f"wrote {args.out}: {matches} of {len(labelled)} record sets of known fault as expected"
             + (f", {unlabelled} of no known fault" if unlabelled else "")
-            + f" ({verdicts}), {result.wall_time_s:.0f} s")
+            + f" ({verdicts}){split_line}, {wall:.0f} s")

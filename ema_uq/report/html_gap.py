@@ -246,6 +246,23 @@ def _faults_section(results: Path) -> str:
     parts.append(_table(["record set", "expected", "verdict", "confidence", "runner-up", "gap before", "gap after",
                          "reproducible", "closed", "shrink ± se", "effect parameters (± CRB σ)",
                          "family probability; why not named; where left"], rows))
+    splits = faults.get("splits")
+    if splits:
+        parts.append(f"<p>The same study under each of {int(splits['n_splits'])} splits of the ten runs into a fitted "
+                     "and a held-out half (the ten arcs of consecutive runs and odd | even both ways: the rig drifts "
+                     "within a test session, so which runs are held out matters): the verdicts per record set."
+                     + (" Not split (they lack some of the ten runs): "
+                        + ", ".join(html.escape(n) for n in splits["not_split"]) + "." if splits.get("not_split")
+                        else "") + "</p>")
+        count_rows = []
+        for name, counts in splits["counts"].items():
+            expected = splits["expected"].get(name)
+            right = counts.get(expected, 0) if expected is not None else None
+            count_rows.append([html.escape(name), html.escape(expected or "no known fault"),
+                               html.escape(", ".join(f"{v} {n}" for v, n in sorted(counts.items(),
+                                                                                  key=lambda kv: -kv[1]))),
+                               "–" if right is None else f"{right} of {sum(counts.values())}"])
+        parts.append(_table(["record set", "expected", "verdicts over the splits", "as expected"], count_rows))
     return "\n".join(parts)
 
 

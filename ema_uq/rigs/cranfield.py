@@ -589,6 +589,80 @@ def _runs_label(runs: Sequence[int]) -> str:
     return ",".join(map(str, runs))
 
 
+@dataclass
+class SplitStudy:
+    """The study under every split of a split family (:func:`run_splits`): ``rows`` one per
+    split (its fitted and held-out runs, how many sets of known fault came out as expected, and
+    per record set the verdict, the best candidate, the shrink figures, the backlash candidate's
+    fitted play and the open-set reasons), ``counts`` the verdicts per record set over the
+    splits, ``expected`` the known seeded faults, ``not_split`` the record sets that lack some
+    of the runs the splits halve."""
+
+    rows: list[dict[str, Any]]
+    counts: dict[str, dict[str, int]]
+    expected: dict[str, str]
+    not_split: list[str] = field(default_factory=list)
+    wall_time_s: float = 0.0
+
+    def summary(self) -> str:
+        lines = [f"[[Run splits]] verdicts under {len(self.rows)} splits (fitted runs | held-out runs)"
+                 + (f"; not split (they lack some of the runs): {', '.join(self.not_split)}" if self.not_split else "")]
+        labelled = sum(name in self.expected for name in self.counts)
+        for row in self.rows:
+            lines.append(f"    {row['split']:<22} {row['right']}/{labelled}  "
+                         + "  ".join(f"{name}: {v['verdict']}" for name, v in row["sets"].items()))
+        lines.append("[[Verdict counts]] per record set over the splits")
+        for name, c in self.counts.items():
+            lines.append(f"    {name:<18} expected {self.expected.get(name, '?'):<18} "
+                         + ", ".join(f"{v} {n}" for v, n in sorted(c.items(), key=lambda kv: -kv[1])))
+        lines.append(f"    wall time {self.wall_time_s:.0f} s")
+        return "\n".join(lines)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"family": "ema_uq.rigs.cranfield.run_splits", "n_splits": len(self.rows), "expected": self.expected,
+                "counts": self.counts, "not_split": self.not_split, "splits": self.rows,
+                "wall_time_s": self.wall_time_s}
+
+
+def run_split_study(read: Callable[[str, Sequence[int]], list[Measurement]], *,
+                    record_sets: Sequence[str] = tuple(EXPECTED), splits: Mapping[str, Any] | None = None,
+                    runs_of: Callable[[str], Sequence[int]] | None = None, seed: int = 0,
+                    progress: Callable[[str], None] | None = None) -> SplitStudy:
+    """:func:`run_study` under every split of ``splits`` (default :func:`run_splits` of ten runs):
+    how much each record set's verdict depends on which runs are held out. With ``runs_of``,
+    the record sets that lack some of the split runs are left out (named in ``not_split``)."""
+    t0 = time.perf_counter()
+    splits = dict(splits or run_splits())
+    needed = {int(r) for parts in splits.values() for half in parts for r in half}
+    sets = [n for n in record_sets if runs_of is None or needed <= {int(r) for r in runs_of(n)}]
+    rows: list[dict[str, Any]] = []
+    counts: dict[str, dict[str, int]] = {name: {} for name in sets}
+    for label, (fit, healthy, estimation, held) in splits.items():
+        study = run_study(read, fit_runs=fit, healthy_held_out_runs=healthy, estimation_runs=estimation,
+                          held_out_runs=held, record_sets=sets, seed=seed)
+        row: dict[str, Any] = {"split": label, "fit_runs": list(fit), "held_out_runs": list(held), "right": 0,
+                               "sets": {}}
+        for d in study.diagnoses:
+            r, verdict = d.row(), study.verdict_of(d.record_set)
+            play = next((c for c in d.result.ranking if c.effect == "backlash"), None)
+            row["right"] += verdict == EXPECTED.get(d.record_set)
+            counts[d.record_set][verdict] = counts[d.record_set].get(verdict, 0) + 1
+            row["sets"][d.record_set] = {
+                "verdict": verdict, "best": r["best"], "runner_up": r["runner_up"],
+                "selection_shrink": r["selection_shrink"], "reproducible_shrink": r["reproducible_shrink"],
+                "reproducible_share": r["reproducible_share"],
+                "play_m": None if play is None else play.parameters["backlash_play"]["estimate"],
+                "play_std_m": None if play is None else play.parameters["backlash_play"]["std"],
+                "play_delta_bic": None if play is None else play.delta_bic,
+                "family_probabilities": r["family_probabilities"], "contenders": r["contenders"],
+                "verdict_reason": r["verdict_reason"], "where_left": r["where_left"]}
+        rows.append(row)
+        if progress:
+            progress(f"split {label}: " + ", ".join(f"{n} {v['verdict']}" for n, v in row["sets"].items()))
+    return SplitStudy(rows, counts, {k: EXPECTED[k] for k in sets if k in EXPECTED},
+                      [n for n in record_sets if n not in sets], time.perf_counter() - t0)
+
+
 # --------------------------------------------------------------------------------------
 # the rig as the command line and the report see it
 # --------------------------------------------------------------------------------------

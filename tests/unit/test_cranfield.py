@@ -695,3 +695,36 @@ def test_fault_diagnosis_verb_diagnoses_a_record_set_it_was_never_told_of(tmp_pa
     assert mystery["record_set"] == "mystery" and mystery["effect"] == "seal_drag"
     assert [b.split()[-1] for b in mystery["estimation_blocks"]] == ["1", "2"] * 3
     assert sorted({b.split()[-1] for b in mystery["held_out_blocks"]}) == ["3", "4"]
+
+
+def test_split_study_counts_verdicts_over_the_splits_and_leaves_out_sets_it_cannot_split():
+    read = _synthetic_record_sets(friction_n=60.0, drift_a=0.0)
+    splits = dict(list(study.run_splits(6).items())[:2])
+
+    def runs_of(name):
+        return range(1, 5) if name == "drift" else range(1, 7)
+
+    table = study.run_split_study(read, record_sets=("normal", "fault", "drift"), splits=splits, runs_of=runs_of)
+    assert table.not_split == ["drift"] and list(table.counts) == ["normal", "fault"]
+    assert [sum(c.values()) for c in table.counts.values()] == [2, 2]
+    assert table.counts["normal"] == {"none": 2} and table.expected == {"normal": "none"}
+    data = table.to_json()
+    assert data["n_splits"] == 2 and [r["split"] for r in data["splits"]] == list(splits)
+    assert all(set(r["sets"]) == {"normal", "fault"} for r in data["splits"]) and "Verdict counts" in table.summary()
+
+
+def test_report_shows_the_verdict_counts_over_the_splits(drifting, tmp_path):
+    import json
+
+    from ema_uq.report.html import _faults_section
+
+    read, result = drifting
+    table = study.run_split_study(read, record_sets=("normal", "fault", "drift"),
+                                  splits=dict(list(study.run_splits(6).items())[:2]))
+    (tmp_path / "faults.json").write_text(json.dumps(io._jsonable({**result.to_json(), "splits": table.to_json()})))
+    section = _faults_section(tmp_path)
+    assert "verdicts over the splits" in section
+    normal = next(r for r in section.split("<tr>")[::-1] if '"name">normal</td>' in r)
+    assert ">none 2</td>" in normal and ">2 of 2</td>" in normal
+    drift = next(r for r in section.split("<tr>")[::-1] if '"name">drift</td>' in r)
+    assert ">no known fault</td>" in drift and ">–</td>" in drift
