@@ -11,6 +11,13 @@ from .models.components import DEG
 from .errors import EmaUqError
 
 SAMPLE_TIME = 0.01  # s, output sample time of the reference experiments
+#: largest magnitude a sample of any input or channel may have, in SI units: above every force,
+#: speed, current or angle of the rigs by orders of magnitude, and far below where squares of
+#: residuals overflow; a sample beyond it is a corrupt value, not a measurement
+MAX_MAGNITUDE = 1e12
+#: longest sample interval [s]: the actuators' dynamics run at milliseconds; a longer step is a
+#: time column in other units (milliseconds read as seconds), and would simulate for hours
+MAX_SAMPLE_TIME = 1.0
 
 
 class ExperimentError(EmaUqError):
@@ -43,6 +50,7 @@ class Experiment:
                 raise ExperimentError(f"input {key} has shape {values.shape}, time has {time.shape}")
             if not np.all(np.isfinite(values)):
                 raise ExperimentError(f"input {key} contains NaN or infinite samples; inputs must be complete")
+            check_magnitude(values, time, f"input {key}")
             inputs[key] = values
         # the concept family whose inputs hold every given input (EMA first)
         names, required = next(((n, r) for n, r in families if set(inputs) <= set(n)), families[0])
@@ -89,6 +97,21 @@ def check_time_grid(time: np.ndarray, where: str = "time") -> None:
     if np.max(np.abs(steps - steps[0])) > 1e-6 * max(steps[0], 1e-12) + 1e-9:
         k = int(np.argmax(np.abs(steps - steps[0])))
         raise ExperimentError(f"{where} is not uniform: step {steps[k]:g} s at sample {k + 1} differs from {steps[0]:g} s; resample to a uniform grid")
+    if steps[0] > MAX_SAMPLE_TIME:
+        raise ExperimentError(f"{where} steps by {steps[0]:g} s, over {MAX_SAMPLE_TIME:g} s between samples; give the "
+                              "time in seconds (a column in milliseconds reads 1000 times too coarse)")
+
+
+def check_magnitude(values: np.ndarray, time: np.ndarray, where: str) -> None:
+    """A finite sample beyond :data:`MAX_MAGNITUDE` is a corrupt value: an error naming the first."""
+    with np.errstate(invalid="ignore"):
+        huge = np.abs(values) > MAX_MAGNITUDE
+    if huge.any():
+        k = int(np.argmax(huge.any(axis=1) if huge.ndim == 2 else huge))
+        value = values[k][np.argmax(huge[k])] if huge.ndim == 2 else values[k]
+        fix = "repair it or trim the record" if where.startswith("input") else "repair it or mark it missing (NaN)"
+        raise ExperimentError(f"{where} has a sample of {value:g} at t = {time[k]:g} s, beyond {MAX_MAGNITUDE:g} in SI "
+                              f"units: a corrupt value; {fix}")
 
 
 def _piecewise_linear(time: np.ndarray, knots: Sequence[tuple[float, float]]) -> np.ndarray:
@@ -168,6 +191,8 @@ class Measurement:
             raise ExperimentError(
                 f"measured values have shape {values.shape}; expected ({self.experiment.n_samples}, {len(channels)})"
             )
+        for c, name in enumerate(channels):
+            check_magnitude(values[:, c], self.experiment.time, f"channel {name}")
         object.__setattr__(self, "channels", channels)
         object.__setattr__(self, "values", values)
         object.__setattr__(self, "attrs", dict(self.attrs))

@@ -141,12 +141,34 @@ def _yaml_error(path: Path, exc: yaml.YAMLError) -> str:
             + "; fix the indentation, quotes or brackets there")
 
 
+class _DuplicateKey(yaml.YAMLError):
+    def __init__(self, key: Any, mark: Any) -> None:
+        super().__init__(f"duplicate key {key!r}")
+        self.key, self.mark = key, mark
+
+
+class _StudyLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, refusing a key given twice in one mapping (plain YAML keeps the
+    last silently, so a second ``seed:`` line would change the study unseen)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise _DuplicateKey(key, key_node.start_mark)
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
 def load_study(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     try:
-        raw = yaml.safe_load(path.read_text())
+        raw = yaml.load(path.read_text(), Loader=_StudyLoader)
     except FileNotFoundError:
         raise StudyError(f"study file {path} does not exist") from None
+    except _DuplicateKey as exc:
+        raise StudyError(f"{path}: key {exc.key!r} is given twice (line {exc.mark.line + 1}); keep one of them") from None
     except yaml.YAMLError as exc:
         raise StudyError(_yaml_error(path, exc)) from None
     if not isinstance(raw, dict):

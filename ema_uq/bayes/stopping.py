@@ -141,7 +141,9 @@ def check_stop(chains: Sequence[np.ndarray], n: int, check_every: int) -> StopCh
     else:
         prev = np.array([autocorr_times(c[: n - check_every]) for c in chains])
         tolerance = tau_change_tolerance(taus, n, check_every, chains[0].shape[1])
-        if not np.all(np.abs(taus - prev) / taus < tolerance):
+        with np.errstate(divide="ignore", invalid="ignore"):   # tau 0 (a chain too short to move): not stable
+            stable = np.all(np.abs(taus - prev) / taus < tolerance)
+        if not stable:
             missing.append("stable tau")
     if not max_rhat < RHAT_MAX:
         missing.append(f"R-hat < {RHAT_MAX:g}")

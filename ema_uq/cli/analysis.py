@@ -8,8 +8,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from .arguments import (PROG, CLIError, add_concept, add_set, add_study, chunk_spec, fraction, load_study_for,
-                        model_vectors, read_all, read_fit, run_provenance, split_names)
+from .arguments import (PROG, CLIError, add_concept, add_set, add_study, chunk_spec, load_study_for, model_vectors,
+                        noise_fraction, positive_int, read_all, read_fit, run_provenance, split_names)
 
 
 # --------------------------------------------------------------------------------------
@@ -29,7 +29,7 @@ def add_sensitivity(subparsers) -> None:
     group = p.add_mutually_exclusive_group()
     group.add_argument("--chunk", type=chunk_spec, metavar="I/N", help="evaluate chunk I (from 0) of N and write it to --out (.npz)")
     group.add_argument("--gather", nargs="+", metavar="CHUNK.npz", help="analyse these evaluated chunks (all of one split)")
-    p.add_argument("--n-base", type=int, default=None, metavar="N",
+    p.add_argument("--n-base", type=positive_int, default=None, metavar="N",
                    help="Sobol base samples (power of 2), overriding the study's sensitivity.n_base")
     p.set_defaults(handler=_run_sensitivity)
 
@@ -100,7 +100,7 @@ def add_identifiability(subparsers) -> None:
                             "or a JSON object {parameter: value} over the nominal set")
     p.add_argument("--experiment", nargs="+", default=None, metavar="NAME",
                    help="with --at and no DATA: the input profile(s) to assess (e.g. deploy-retract)")
-    p.add_argument("--noise", type=fraction, default=0.02, metavar="FRACTION",
+    p.add_argument("--noise", type=noise_fraction, default=0.02, metavar="FRACTION",
                    help="with --at: sensor noise as a fraction of each channel's RMS (default: the study's data.noise, "
                         "else 0.02)")
     p.add_argument("--out", required=True, metavar="IDENT.json")
@@ -112,7 +112,7 @@ def add_identifiability(subparsers) -> None:
                    help="assess this one custom channel set instead")
     p.add_argument("--profile", nargs="+", default=None, metavar="NAME",
                    help="parameters to profile (default: every free B_* and C_*)")
-    p.add_argument("--profile-points", type=int, default=9, metavar="N", help="grid points per profile (default 9)")
+    p.add_argument("--profile-points", type=positive_int, default=9, metavar="N", help="grid points per profile (default 9)")
     p.add_argument("--profile-sigmas", type=float, default=4.0, metavar="K",
                    help="profile half-span in Cramér-Rao standard deviations (default 4)")
     p.add_argument("--profile-span", type=float, default=0.5, metavar="FRACTION",

@@ -41,6 +41,39 @@ def fraction(text: str) -> float:
     return value
 
 
+def noise_fraction(text: str) -> float:
+    """A noise level: a fraction of each channel's RMS, at most 0.5 (as the study schema's data.noise)."""
+    value = fraction(text)
+    if value > 0.5:
+        raise argparse.ArgumentTypeError(f"{text!r} is over 0.5: the noise is a fraction of each channel's RMS "
+                                         "(0.02 is 2 %)")
+    return value
+
+
+#: file types a figure can be written as (matplotlib's savefig chooses the format by the suffix)
+FIGURE_SUFFIXES = (".png", ".pdf", ".svg", ".jpg", ".jpeg", ".eps", ".ps", ".tif", ".tiff", ".webp")
+
+
+def check_figure_path(path: str, option: str = "--figure") -> None:
+    """A figure path whose suffix matplotlib can write, checked before any work is done."""
+    import os
+
+    suffix = os.path.splitext(path)[1].lower()
+    if suffix not in FIGURE_SUFFIXES:
+        raise CLIError(f"{option} {path}: cannot write a figure as {suffix or 'a file without suffix'}; end the name in "
+                       f"one of {', '.join(FIGURE_SUFFIXES)}")
+
+
+def positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} must be a positive integer")
+    return value
+
+
 def non_negative_int(text: str) -> int:
     try:
         value = int(text)

@@ -8,8 +8,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from .arguments import (PROG, CLIError, add_concept, add_data, add_seed, add_set, add_study, fraction,
-                        model_vectors, non_negative_int, read_all, run_provenance, split_names)
+from .arguments import (PROG, CLIError, add_concept, add_data, add_seed, add_set, add_study, check_figure_path,
+                        fraction, model_vectors, non_negative_int, read_all, run_provenance, split_names)
 
 
 # --------------------------------------------------------------------------------------
@@ -50,6 +50,8 @@ def _run_gap(args: argparse.Namespace) -> str:
 
     if not 0 < args.holdout < 1:
         raise CLIError(f"--holdout {args.holdout:g}: give a fraction between 0 and 1 (e.g. 0.3)")
+    if args.figure:
+        check_figure_path(args.figure)
     io.prepare_output(args.out)
     if args.figure:
         io.prepare_output(args.figure)
@@ -220,11 +222,19 @@ def _run_fault_diagnosis(args: argparse.Namespace) -> str:
         print(f"{PROG} fault-diagnosis: {line}", file=sys.stderr, flush=True)
 
     record_sets = io.cranfield_record_sets(study)
-    for name in record_sets:
-        io.cranfield_file(name, study)          # every file there before the healthy fit starts
+    named = bool((study.get("data") or {}).get("record_sets"))
 
     def runs_of(name: str):
         return io.cranfield_runs(io.cranfield_file(name, study))
+
+    for name in record_sets:                    # every file readable before the healthy fit starts
+        try:
+            runs_of(name)
+        except io.DataFileError as exc:
+            if named or name in io.CRANFIELD_FILES:
+                raise
+            raise io.DataFileError(f"{exc}; it was read because it lies in the data folder: move it out, or list "
+                                   "the record sets to read in the study's data.record_sets") from None
 
     result = run_study(read, seed=int(study.get("seed", 0)), progress=None if args.quiet else progress,
                        record_sets=record_sets, runs_of=runs_of)

@@ -10,8 +10,9 @@ import argparse
 import sys
 
 from .arguments import (EXPERIMENT_NAMES, PROG, UNIDENTIFIABLE_MODES, CLIError, add_concept, add_data, add_seed,
-                        add_set, add_study, fraction, model_vectors, non_negative_int, read_all, read_fit,
-                        resolve_effects, run_provenance, split_names)
+                        add_set, add_study, check_figure_path, fraction, model_vectors, noise_fraction,
+                        non_negative_int, positive_int, read_all, read_fit, resolve_effects, run_provenance,
+                        split_names)
 
 
 # --------------------------------------------------------------------------------------
@@ -31,7 +32,7 @@ def add_simulate(subparsers) -> None:
                    help="with --study: which of the study's records to write")
     p.add_argument("--experiment", choices=EXPERIMENT_NAMES, default=None,
                    help="input profile (required without --study)")
-    p.add_argument("--noise", type=fraction, default=0.02, metavar="FRACTION",
+    p.add_argument("--noise", type=noise_fraction, default=0.02, metavar="FRACTION",
                    help="noise standard deviation as a fraction of each channel's RMS (default 0.02)")
     add_seed(p)
     add_set(p)
@@ -108,7 +109,7 @@ def add_identify(subparsers) -> None:
                         "reports the identifiable combinations; error stops naming the direction (default fix)")
     p.add_argument("--validate", nargs="+", default=[], metavar="DATA",
                    help="data NOT used for estimation: report per-channel fit and residual tests")
-    p.add_argument("--max-iterations", type=int, default=50, metavar="N")
+    p.add_argument("--max-iterations", type=positive_int, default=50, metavar="N")
     p.add_argument("--out", required=True, metavar="FIT.json")
     p.set_defaults(handler=_run_identify)
 
@@ -197,13 +198,13 @@ def add_sample(subparsers) -> None:
     add_study(p, "seed, sampler budgets, moves, integrator and data.set")
     add_seed(p)
     add_set(p)
-    p.add_argument("--walkers", type=int, default=None, metavar="N",
+    p.add_argument("--walkers", type=positive_int, default=None, metavar="N",
                    help="walkers per ensemble (default 16 for --moves independence, else "
                         "max(2 x free parameters, 16))")
-    p.add_argument("--chains", "--ensembles", dest="chains", type=int, default=4, metavar="N",
+    p.add_argument("--chains", "--ensembles", dest="chains", type=positive_int, default=4, metavar="N",
                    help="independent ensembles; R-hat and ESS compare them (default 4)")
-    p.add_argument("--max-steps", type=int, default=20000, metavar="N", help="step cap per ensemble (default 20000)")
-    p.add_argument("--check-every", type=int, default=50, metavar="N",
+    p.add_argument("--max-steps", type=positive_int, default=20000, metavar="N", help="step cap per ensemble (default 20000)")
+    p.add_argument("--check-every", type=positive_int, default=50, metavar="N",
                    help="steps between stopping-rule checks (default 50)")
     p.add_argument("--spread", type=float, default=9.0, metavar="C",
                    help="start walkers from N(estimate, C x Cramér-Rao covariance) (default 9: overdispersed, "
@@ -230,7 +231,7 @@ def add_sample(subparsers) -> None:
     p.add_argument("--prior", action="append", default=[], metavar="NAME=KIND:A,B",
                    help="prior of a free parameter: lognormal:mu,sigma (of ln value), uniform:lo,hi or "
                         "normal:mean,sd; repeatable (default: flat on the bounds, rig normal for p_ACE, p_PCE)")
-    p.add_argument("--predictive", type=int, default=100, metavar="N",
+    p.add_argument("--predictive", type=non_negative_int, default=100, metavar="N",
                    help="posterior draws simulated for the predictive group (default 100)")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     p.set_defaults(handler=_run_sample)
@@ -245,7 +246,7 @@ def _run_sample(args: argparse.Namespace) -> str:
     from ..models import get_model
 
     if args.walkers is not None and args.walkers < 2:
-        raise CLIError(f"--walkers {args.walkers}: give a positive even number of walkers")
+        raise CLIError(f"--walkers {args.walkers}: give at least 2 walkers")
     out = io.prepare_output(args.out)
     backend = Path(args.backend) if args.backend else out.with_suffix(".h5")
     io.prepare_output(backend)
@@ -298,14 +299,14 @@ def add_sbc(subparsers) -> None:
                     "replicate files into the rank-uniformity result (chi-square and KS p per parameter) "
                     "and, with --figure, the rank histograms.")
     add_study(p, "concept, data, free parameters and sampler settings of the campaign")
-    p.add_argument("--replicate", type=int, metavar="I", help="replicate index (0, 1, ...)")
+    p.add_argument("--replicate", type=non_negative_int, metavar="I", help="replicate index (0, 1, ...)")
     p.add_argument("--seed", type=non_negative_int, default=0, help="campaign seed (default 0)")
-    p.add_argument("--draws", type=int, default=99, metavar="L", help="thinned posterior draws per replicate (default 99)")
+    p.add_argument("--draws", type=positive_int, default=99, metavar="L", help="thinned posterior draws per replicate (default 99)")
     p.add_argument("--prior-spread", type=float, default=0.1, metavar="S",
                    help="priors of the free parameters without a rig value: ln(theta) ~ N(ln nominal, S) (default 0.1)")
     p.add_argument("--backend", metavar="FILE.h5", help="sampler backend of the replicate (resumes a killed run)")
     p.add_argument("--gather", nargs="+", metavar="REPLICATE.json", help="replicate files to join")
-    p.add_argument("--bins", type=int, default=10, help="rank bins of the uniformity tests (default 10)")
+    p.add_argument("--bins", type=positive_int, default=10, help="rank bins of the uniformity tests (default 10)")
     p.add_argument("--figure", metavar="FILE.png", help="with --gather: rank histograms")
     p.add_argument("--out", required=True, metavar="FILE.json")
     p.set_defaults(handler=_run_sbc)
@@ -317,6 +318,8 @@ def _run_sbc(args: argparse.Namespace) -> str:
     from .. import io
     from ..bayes import sbc
 
+    if args.figure:
+        check_figure_path(args.figure)
     out = io.prepare_output(args.out)
     if args.gather:
         if args.replicate is not None:

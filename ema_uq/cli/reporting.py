@@ -7,7 +7,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from .arguments import CONCEPTS, PROG, CLIError
+from .arguments import CONCEPTS, PROG, CLIError, positive_int
 
 
 # --------------------------------------------------------------------------------------
@@ -30,17 +30,21 @@ def _run_report(args: argparse.Namespace) -> str:
     from ..report import build_report
     from ..study import load_study
 
+    from .. import io
+
     study = load_study(args.study)
     if not Path(args.results).is_dir():
         raise CLIError(f"results folder {args.results} does not exist; run the workflow first")
+    if not any(Path(args.results).glob("*.json")):
+        raise CLIError(f"results folder {args.results} holds no stage result (no .json file); run the workflow "
+                       "first, or give the study's results folder (results/<study>)")
+    out = io.prepare_output(args.out)
     t0 = time.perf_counter()
 
     def progress(line: str) -> None:
         print(f"{PROG} report: {line}, {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
 
     text = build_report(study, args.study, args.results, progress=progress)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(text, encoding="utf-8")
     return f"wrote {out} ({len(text) / 1e6:.1f} MB)"
 
@@ -54,8 +58,8 @@ def add_screenshot(subparsers) -> None:
                                           "screen and fail when the page logs console errors.")
     p.add_argument("report", metavar="REPORT.html")
     p.add_argument("--out", required=True, metavar="SCREEN.png")
-    p.add_argument("--width", type=int, default=1280)
-    p.add_argument("--height", type=int, default=900)
+    p.add_argument("--width", type=positive_int, default=1280)
+    p.add_argument("--height", type=positive_int, default=900)
     p.set_defaults(handler=_run_screenshot)
 
 

@@ -268,6 +268,10 @@ def read_measurement(path: str | os.PathLike, concept: str | None = None) -> Mea
         col = int(np.argmax(np.isinf(values).any(axis=0)))
         raise _fail(path, f"channel {channels[col]} holds infinite values; "
                           "mark missing samples with NaN (empty or 'nan' in CSV)")
+    empty = [c for c, name in enumerate(channels) if not np.isfinite(values[:, c]).any()]
+    if empty:
+        raise _fail(path, f"channel {channels[empty[0]]} has no sample (every value missing); drop the column or "
+                          "give its values")
 
     name = str(attrs.pop("experiment", path.stem))
     try:
