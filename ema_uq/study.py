@@ -168,7 +168,8 @@ def load_study(path: str | Path) -> dict[str, Any]:
     except FileNotFoundError:
         raise StudyError(f"study file {path} does not exist") from None
     except _DuplicateKey as exc:
-        raise StudyError(f"{path}: key {exc.key!r} is given twice (line {exc.mark.line + 1}); keep one of them") from None
+        raise StudyError(f"{path}: key {exc.key!r} is given twice (line {exc.mark.line + 1}); "
+                         "keep one of them") from None
     except yaml.YAMLError as exc:
         raise StudyError(_yaml_error(path, exc)) from None
     if not isinstance(raw, dict):

@@ -112,7 +112,8 @@ def add_identifiability(subparsers) -> None:
                    help="assess this one custom channel set instead")
     p.add_argument("--profile", nargs="+", default=None, metavar="NAME",
                    help="parameters to profile (default: every free B_* and C_*)")
-    p.add_argument("--profile-points", type=positive_int, default=9, metavar="N", help="grid points per profile (default 9)")
+    p.add_argument("--profile-points", type=positive_int, default=9, metavar="N",
+                   help="grid points per profile (default 9)")
     p.add_argument("--profile-sigmas", type=float, default=4.0, metavar="K",
                    help="profile half-span in Cramér-Rao standard deviations (default 4)")
     p.add_argument("--profile-span", type=float, default=0.5, metavar="FRACTION",

@@ -60,8 +60,9 @@ def check_figure_path(path: str, option: str = "--figure") -> None:
 
     suffix = os.path.splitext(path)[1].lower()
     if suffix not in FIGURE_SUFFIXES:
-        raise CLIError(f"{option} {path}: cannot write a figure as {suffix or 'a file without suffix'}; end the name in "
-                       f"one of {', '.join(FIGURE_SUFFIXES)}")
+        kind = suffix or "a file without suffix"
+        raise CLIError(f"{option} {path}: cannot write a figure as {kind}; end the name in one of "
+                       f"{', '.join(FIGURE_SUFFIXES)}")
 
 
 def positive_int(text: str) -> int:

@@ -203,7 +203,8 @@ def add_sample(subparsers) -> None:
                         "max(2 x free parameters, 16))")
     p.add_argument("--chains", "--ensembles", dest="chains", type=positive_int, default=4, metavar="N",
                    help="independent ensembles; R-hat and ESS compare them (default 4)")
-    p.add_argument("--max-steps", type=positive_int, default=20000, metavar="N", help="step cap per ensemble (default 20000)")
+    p.add_argument("--max-steps", type=positive_int, default=20000, metavar="N",
+                   help="step cap per ensemble (default 20000)")
     p.add_argument("--check-every", type=positive_int, default=50, metavar="N",
                    help="steps between stopping-rule checks (default 50)")
     p.add_argument("--spread", type=float, default=9.0, metavar="C",
@@ -301,7 +302,8 @@ def add_sbc(subparsers) -> None:
     add_study(p, "concept, data, free parameters and sampler settings of the campaign")
     p.add_argument("--replicate", type=non_negative_int, metavar="I", help="replicate index (0, 1, ...)")
     p.add_argument("--seed", type=non_negative_int, default=0, help="campaign seed (default 0)")
-    p.add_argument("--draws", type=positive_int, default=99, metavar="L", help="thinned posterior draws per replicate (default 99)")
+    p.add_argument("--draws", type=positive_int, default=99, metavar="L",
+                   help="thinned posterior draws per replicate (default 99)")
     p.add_argument("--prior-spread", type=float, default=0.1, metavar="S",
                    help="priors of the free parameters without a rig value: ln(theta) ~ N(ln nominal, S) (default 0.1)")
     p.add_argument("--backend", metavar="FILE.h5", help="sampler backend of the replicate (resumes a killed run)")
