@@ -65,24 +65,22 @@ def check_figure_path(path: str, option: str = "--figure") -> None:
                        f"{', '.join(FIGURE_SUFFIXES)}")
 
 
-def positive_int(text: str) -> int:
+def _whole_number(text: str, minimum: int, kind: str) -> int:
     try:
         value = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{text!r} must be a positive integer")
+    if value < minimum:
+        raise argparse.ArgumentTypeError(f"{text!r} must be a {kind} integer")
     return value
+
+
+def positive_int(text: str) -> int:
+    return _whole_number(text, 1, "positive")
 
 
 def non_negative_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"{text!r} must be a non-negative integer")
-    return value
+    return _whole_number(text, 0, "non-negative")
 
 
 def split_names(values: Sequence[str] | None) -> list[str] | None:

@@ -61,30 +61,28 @@ def test_magnitude_bound_is_far_above_any_rig_quantity_and_checks_inputs_and_cha
                                "F_ER2": np.zeros(5)})
 
 
-def test_a_time_column_in_milliseconds_is_refused_not_simulated_for_hours(record, tmp_path, capsys):
-    lines = record.read_text().splitlines()
+def _rewrite_column(path, out, column: str, rewrite) -> None:
+    """A copy of CSV record ``path`` at ``out`` with every value of ``column`` passed through ``rewrite``."""
+    lines = path.read_text().splitlines()
     header = next(i for i, line in enumerate(lines) if not line.startswith("#"))
-    t = lines[header].split(",").index("time")
+    c = lines[header].split(",").index(column)
     for i in range(header + 1, len(lines)):
         cells = lines[i].split(",")
-        cells[t] = repr(float(cells[t]) * 1000.0)
+        cells[c] = rewrite(cells[c])
         lines[i] = ",".join(cells)
+    out.write_text("\n".join(lines) + "\n")
+
+
+def test_a_time_column_in_milliseconds_is_refused_not_simulated_for_hours(record, tmp_path, capsys):
     bad = tmp_path / "ms.csv"
-    bad.write_text("\n".join(lines) + "\n")
+    _rewrite_column(record, bad, "time", lambda cell: repr(float(cell) * 1000.0))
     err = _error(capsys, ["identify", str(bad), "--concept", "htls", "--out", str(tmp_path / "fit.json")])
     assert "steps by 10 s" in err and "seconds" in err
 
 
 def test_a_channel_without_any_sample_is_refused(record, tmp_path, capsys):
-    lines = record.read_text().splitlines()
-    header = next(i for i, line in enumerate(lines) if not line.startswith("#"))
-    c = lines[header].split(",").index("Omega")
-    for i in range(header + 1, len(lines)):
-        cells = lines[i].split(",")
-        cells[c] = "nan"
-        lines[i] = ",".join(cells)
     bad = tmp_path / "empty_channel.csv"
-    bad.write_text("\n".join(lines) + "\n")
+    _rewrite_column(record, bad, "Omega", lambda cell: "nan")
     err = _error(capsys, ["gap", str(bad), "--concept", "htls", "--candidates", "backlash",
                           "--out", str(tmp_path / "gap.json")])
     assert "channel Omega has no sample" in err
