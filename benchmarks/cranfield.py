@@ -71,14 +71,11 @@ def main() -> None:
     for label, seconds in timings.items():
         print(f"    {label:<48} {seconds * 1e3:9.2f} ms")
 
-    def read(name, runs):
-        return io.read_cranfield(io.cranfield_file(name), runs=runs, channels=CHANNELS)
+    records = io.CranfieldRecords(channels=CHANNELS)
+    read = records.read
 
     if args.splits:
-        def runs_of(name):
-            return io.cranfield_runs(io.cranfield_file(name))
-
-        result = run_split_study(read, record_sets=io.cranfield_record_sets(), runs_of=runs_of)
+        result = run_split_study(read, record_sets=io.cranfield_record_sets(), runs_of=records.runs_of)
         print(result.summary())
         if args.out:
             with open(args.out, "w", encoding="utf-8") as fh:

@@ -215,24 +215,14 @@ def _run_fault_diagnosis(args: argparse.Namespace) -> str:
                        "drop data.channels or give exactly those")
     io.prepare_output(args.out)
 
-    blocks: dict[str, list] = {}          # each record set read once: the run splits ask for its runs again and again
-
-    def read(name: str, runs=None):
-        if name not in blocks:
-            blocks[name] = io.read_cranfield(io.cranfield_file(name, study), channels=CHANNELS)
-        wanted = None if runs is None else {int(r) for r in runs}
-        if wanted is not None and not wanted <= {m.attrs["run"] for m in blocks[name]}:
-            return io.read_cranfield(io.cranfield_file(name, study), runs=runs, channels=CHANNELS)  # names what lacks
-        return [m for m in blocks[name] if wanted is None or m.attrs["run"] in wanted]
+    records = io.CranfieldRecords(study, CHANNELS)   # each file read once: the run splits ask for it again
+    read, runs_of = records.read, records.runs_of
 
     def progress(line: str) -> None:
         print(f"{PROG} fault-diagnosis: {line}", file=sys.stderr, flush=True)
 
     record_sets = io.cranfield_record_sets(study)
     named = bool((study.get("data") or {}).get("record_sets"))
-
-    def runs_of(name: str):
-        return sorted({m.attrs["run"] for m in read(name)})
 
     for name in record_sets:                    # every file readable before the healthy fit starts
         try:

@@ -45,8 +45,8 @@ The parts: :mod:`.files` (the error, formats and output checks every part shares
 rigs' files) and :mod:`.results` (JSON).
 """
 from .cranfield import (CRANFIELD_BLOCK, CRANFIELD_CHANNELS, CRANFIELD_DIR_ENV, CRANFIELD_FILES, CRANFIELD_HEALTHY,
-                        CRANFIELD_SAMPLE_TIME, DEFAULT_CRANFIELD_DIR, cranfield_data_dir, cranfield_file,
-                        cranfield_record_sets, cranfield_runs, read_cranfield)
+                        CRANFIELD_SAMPLE_TIME, DEFAULT_CRANFIELD_DIR, CranfieldRecords, cranfield_data_dir,
+                        cranfield_file, cranfield_record_sets, read_cranfield)
 from .emps import DEFAULT_EMPS_DIR, EMPS_CHANNELS, EMPS_DIR_ENV, EMPS_FILES, emps_data_dir, emps_files, read_emps
 from .files import FORMATS, TIME_UNIT, DataFileError, data_format, prepare_output, repository_root
 from .measurement import read_measurement, write_measurement
@@ -55,7 +55,7 @@ from .results import _jsonable, read_json, write_json  # noqa: F401 - _jsonable:
 __all__ = [
     "DataFileError", "FORMATS", "data_format", "prepare_output", "write_measurement", "read_measurement",
     "write_json", "read_json", "read_emps", "emps_data_dir", "emps_files", "EMPS_DIR_ENV",
-    "read_cranfield", "cranfield_data_dir", "cranfield_file", "cranfield_record_sets", "cranfield_runs",
+    "read_cranfield", "cranfield_data_dir", "cranfield_file", "cranfield_record_sets", "CranfieldRecords",
     "CRANFIELD_DIR_ENV", "CRANFIELD_HEALTHY",
     "TIME_UNIT", "repository_root", "DEFAULT_EMPS_DIR", "EMPS_CHANNELS", "EMPS_FILES", "DEFAULT_CRANFIELD_DIR",
     "CRANFIELD_FILES", "CRANFIELD_CHANNELS", "CRANFIELD_SAMPLE_TIME", "CRANFIELD_BLOCK",

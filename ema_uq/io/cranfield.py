@@ -82,10 +82,29 @@ def cranfield_record_sets(study: Mapping[str, Any] | None = None) -> list[str]:
     return names
 
 
-def cranfield_runs(path: str | os.PathLike) -> list[int]:
-    """The run numbers a record set holds (sorted)."""
-    table = _cranfield_table(Path(path))
-    return sorted({int(r) for r in table["run"].tolist()})
+class CranfieldRecords:
+    """The record sets of one data folder (the study's), each file read once: ``read(name, runs)``
+    returns the blocks of those runs (None: all) as :func:`read_cranfield` would, for a study
+    and its run splits that ask for the same files again and again; ``runs_of(name)`` the runs a
+    set holds."""
+
+    def __init__(self, study: Mapping[str, Any] | None = None, channels: Sequence[str] = ("position", "current")):
+        self.study, self.channels = study, tuple(channels)
+        self._blocks: dict[str, list[Measurement]] = {}
+
+    def read(self, name: str, runs: Sequence[int] | None = None) -> list[Measurement]:
+        if name not in self._blocks:
+            self._blocks[name] = read_cranfield(cranfield_file(name, self.study), channels=self.channels)
+        blocks = self._blocks[name]
+        if runs is None:
+            return list(blocks)
+        wanted = {int(r) for r in runs}
+        if not wanted <= {m.attrs["run"] for m in blocks}:  # the reader's own error names the run that lacks
+            return read_cranfield(cranfield_file(name, self.study), runs=runs, channels=self.channels)
+        return [m for m in blocks if m.attrs["run"] in wanted]
+
+    def runs_of(self, name: str) -> list[int]:
+        return sorted({m.attrs["run"] for m in self.read(name)})
 
 
 def _cranfield_table(path: Path) -> dict[str, np.ndarray]:

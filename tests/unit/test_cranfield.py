@@ -666,6 +666,20 @@ def test_record_sets_are_every_csv_of_the_folder_known_ones_first_then_in_natura
         io.cranfield_record_sets(folder)
 
 
+def test_records_of_a_folder_are_read_once_and_selected_as_the_reader_would(tmp_path, monkeypatch):
+    _write_block_file(tmp_path / "normal.csv", loads=(20, 40), runs=(1, 2, 3))
+    monkeypatch.setenv(io.CRANFIELD_DIR_ENV, str(tmp_path))
+    records = io.CranfieldRecords(channels=CHANNELS)
+    direct = io.read_cranfield(tmp_path / "normal.csv", runs=[1, 3], channels=CHANNELS)
+    chosen = records.read("normal", [3, 1])
+    assert [m.experiment.name for m in chosen] == [m.experiment.name for m in direct]
+    assert all(np.array_equal(a.values, b.values) for a, b in zip(chosen, direct))
+    (tmp_path / "normal.csv").unlink()                        # read once: the blocks stay in memory
+    assert records.runs_of("normal") == [1, 2, 3] and len(records.read("normal")) == 6
+    with pytest.raises(io.DataFileError):
+        records.read("normal", [4])
+
+
 def test_a_set_without_the_asked_runs_is_split_in_its_own_runs():
     asked = ((1, 2, 3, 4, 5), (6, 7, 8, 9, 10))
     assert study.own_runs_split("s", range(1, 11), *asked) == asked
