@@ -51,6 +51,11 @@ gets every form of the other families, :func:`catalogue_families`). The diagnosi
 longer name the physics in the records, so the right verdict is a flag: ``unexplained`` or
 ``ambiguous``. Slot ``200 + i`` for the i-th variant: other records than its ``effect`` case.
 
+Variants written after method version 2 was frozen (:func:`unseen_cases`, slots ``300 + i`` and
+``400 + i`` of :data:`~ema_uq.gap.variant_catalogue.UNSEEN_VARIANTS`): never in this list, so
+that the frozen method can be run once on mechanisms nobody tuned it on
+(``benchmarks/gap_unseen.py``).
+
 Model-form stress of no-effect cases: every odd-numbered none case (``none#1``, ``#3``, ...)
 is *stressed*: its records differ from the fitted model in ways a rig always does
 (:func:`ema_uq.gap.variants.draw_stress`: AR(1) sensor noise, quantised sensors, design
@@ -100,7 +105,7 @@ from .attribute import diagnose
 from .strategy import DiagnosisSettings
 from ..errors import EmaUqError
 from .selfcheck_scores import Case, CaseOutcome, SelfCheckResult, _num
-from .variants import CONCEPTS, VARIANTS, draw_stress, draw_variant_parameters, make_records
+from .variants import CONCEPTS, UNSEEN_VARIANTS, VARIANTS, draw_stress, draw_variant_parameters, make_records
 
 # The scores and their targets stay importable from here, where they were defined before they
 # had a room of their own (the command line, the benchmark and the tests reach them so).
@@ -115,6 +120,8 @@ DEFAULT_SEED = 2024
 NONE_PER_SET = 5                 # x 2 sensor sets x 2 concepts = 20 no-effect cases in the full check
 NONE_SLOT = 100                  # slot of the first none case (variants take 0..len(VARIANTS)-1)
 LEFT_OUT_SLOT = 200              # slot of the left-out case of variant i: LEFT_OUT_SLOT + i
+UNSEEN_SLOT = 300                # unseen variant i (UNSEEN_VARIANTS): slot 300 + i, left out: 400 + i
+UNSEEN_LEFT_OUT_SLOT = 400
 PARAMETER_STREAM = 1             # variant parameters come from default_rng((case seed, PARAMETER_STREAM))
 STRESS_STREAM = 2                # stress of a stressed none case from default_rng((case seed, STRESS_STREAM))
 CALIBRATION_SEEDS = frozenset(range(100, 104))
@@ -156,19 +163,22 @@ def catalogue_without(concept: str, family: str) -> tuple[str, ...]:
 
 
 def _case(seed: int, concept: str, sensors: str, variant: str | None, none_index: int = 0,
-          left_out: bool = False) -> Case:
-    names = list(VARIANTS)
-    family = None if variant is None else VARIANTS[variant].family
+          left_out: bool = False, unseen: bool = False) -> Case:
+    registry = UNSEEN_VARIANTS if unseen else VARIANTS
+    names = list(registry)
+    family = None if variant is None else registry[variant].family
+    first, first_left_out = (UNSEEN_SLOT, UNSEEN_LEFT_OUT_SLOT) if unseen else (0, LEFT_OUT_SLOT)
     stressed, candidates = variant is None and none_index % 2 == 1, None
     if left_out:
         if family is None:
             raise SelfCheckError(f"variant {variant!r} has no catalogue family to leave out")
-        slot, kind, label = LEFT_OUT_SLOT + names.index(variant), "left_out", f"{variant}-left-out"
+        slot, kind, label = first_left_out + names.index(variant), "left_out", f"{variant}-left-out"
         candidates = catalogue_without(concept, family)
     elif variant is None:
         slot, kind, label = NONE_SLOT + none_index, "none", f"none#{none_index}" + ("-stressed" if stressed else "")
     else:
-        slot, kind, label = names.index(variant), "effect" if family is not None else "out_of_catalogue", variant
+        slot = first + names.index(variant)
+        kind, label = "effect" if family is not None else "out_of_catalogue", variant
     case = Case(f"{concept}/{sensors}/{label}", concept, sensors, kind, variant, family,
                 case_seed(seed, concept, sensors, slot), stressed=stressed, candidates=candidates)
     if case.seed in CALIBRATION_SEEDS:
@@ -221,6 +231,24 @@ def build_cases(concepts: Sequence[str] = CONCEPTS, *, seed: int = DEFAULT_SEED,
                 if "left_out" in kinds:
                     cases += [_case(seed, concept, s, v, left_out=True) for v in inside]
     return [c for c in cases if c.kind in kinds]
+
+
+def unseen_cases(seed: int, concepts: Sequence[str] = CONCEPTS, sensors: Sequence[str] = SENSOR_SETS) -> list[Case]:
+    """The cases of the variants written after method version 2 was frozen
+    (:data:`~ema_uq.gap.variant_catalogue.UNSEEN_VARIANTS`), per concept x sensor set: every one
+    once, and every in-catalogue one once more with its family left out. Their slots (300 + i,
+    400 + i) are none of the self-check's, so no record repeats one of its cases."""
+    cases = []
+    for concept in concepts:
+        if concept not in CONCEPTS:
+            raise SelfCheckError(f"no independent variants for concept {concept!r}; choose from {', '.join(CONCEPTS)}")
+        for s in sensors:
+            if s not in SENSOR_SETS:
+                raise SelfCheckError(f"unknown sensor set {s!r}; choose from {', '.join(SENSOR_SETS)}")
+            cases += [_case(seed, concept, s, v, unseen=True) for v in UNSEEN_VARIANTS]
+            cases += [_case(seed, concept, s, v, left_out=True, unseen=True)
+                      for v, var in UNSEEN_VARIANTS.items() if var.family is not None]
+    return cases
 
 
 def case_stress(case: Case) -> dict[str, Any] | None:

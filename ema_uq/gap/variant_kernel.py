@@ -13,9 +13,10 @@ import numpy as np
 from numba import njit
 
 from ..models import get_model
-from .variant_catalogue import (TWO_PI, V_BACKLASH_TWO_MASS, V_CARDAN, V_DEADZONE, V_LOAD_FOLLOW, V_LOAD_LINEAR,
-                                V_LOAD_POWER, V_NONE, V_RIPPLE, V_SHAFT_TWO_MASS, V_SPOT, V_STRIBECK_EXP,
-                                V_STRIBECK_GAUSS, V_STRIBECK_RATIONAL, V_TORQUE_LAG, Variant, VariantError)
+from .variant_catalogue import (TWO_PI, V_BACKLASH_TWO_MASS, V_CARDAN, V_DEADZONE, V_LOAD_EFFICIENCY, V_LOAD_FOLLOW,
+                                V_LOAD_LINEAR, V_LOAD_OFFSET, V_LOAD_POWER, V_NONE, V_POSITION_SENSOR, V_RIPPLE,
+                                V_SHAFT_TWO_MASS, V_SPOT, V_STRIBECK_ASYMMETRIC, V_STRIBECK_EXP, V_STRIBECK_GAUSS,
+                                V_STRIBECK_RATIONAL, V_TORQUE_LAG, V_WARM_UP, Variant, VariantError)
 
 #: ripple periods per motor revolution (as the catalogue's torque_ripple)
 RIPPLE_PERIODS = {"htls": 6.0, "lths": 4.0}
@@ -23,6 +24,7 @@ LOAD_SMOOTHING = 200.0      # N, F0 of the smoothed |F| of the load-friction var
 LOAD_REFERENCE = 10e3       # N, F_ref of the power-law load friction
 LOAD_EXPONENT = 1.2
 CONTACT_RAMP = 0.1          # fraction of the output play over which the load is taken up
+EFFICIENCY_POWER = 5.0      # W, P0 of the smoothed switch between opposing and aiding load
 
 
 # ------------------------------------------------------------------------------------------
@@ -34,6 +36,9 @@ PARAMETER_LAYOUT = ("J", "B_TS1", "C_TS1", "B_U1", "C_U1", "B_TP1", "C_TP1",
                     "k_n", "p_ACE", "p_PCE", "B_MG", "C_MG", "R_A", "L_A", "k_s")
 (T_J, T_BTS1, T_CTS1, T_BU1, T_CU1, T_BTP1, T_CTP1, T_BTS2, T_CTS2, T_BU2, T_CU2, T_BTP2, T_CTP2,
  T_KN, T_PACE, T_PPCE, T_BMG, T_CMG, T_RA, T_LA, T_KS) = range(21)
+#: the loss coefficients (viscous and Coulomb) that the friction warm-up scales
+LOSS_COEFFICIENTS = np.array([T_BTS1, T_CTS1, T_BU1, T_CU1, T_BTP1, T_CTP1, T_BTS2, T_CTS2, T_BU2, T_CU2, T_BTP2,
+                              T_CTP2, T_BMG, T_CMG])
 STATION_STRIDE = 6  # station-2 losses follow station 1's in the same order
 #: design constants in this kernel's own order, then the values derived from them
 CONSTANT_LAYOUT = ("omega_eps", "r", "gamma", "beta1", "beta2", "k_y", "M_Bmax", "K_b", "Omega_half",
@@ -109,6 +114,16 @@ def _kernel_values(concept: str, variant: Variant | None, params: Mapping[str, f
         v[:3] = (p["friction"], p["position"], p["width"])
     elif kid == V_LOAD_FOLLOW:
         v[0] = p["stiffness"]
+    elif kid == V_LOAD_EFFICIENCY:
+        v[:2] = (p["mu"], p["aid"])
+    elif kid == V_STRIBECK_ASYMMETRIC:
+        v[:3] = (p["ratio"], p["speed"], p["asymmetry"])
+    elif kid == V_WARM_UP:
+        v[:2] = (p["drop"], p["tau"])
+    elif kid == V_POSITION_SENSOR:
+        v[:4] = (p["amplitude"], p["wavelength"], p["phase1"], p["phase2"])
+    elif kid == V_LOAD_OFFSET:
+        v[0] = math.copysign(p["offset"], p["direction"])
     return v
 
 
@@ -126,6 +141,11 @@ def _coulomb(level, v, eps, vid, vv):
     if vid == V_STRIBECK_RATIONAL:
         q = v / vv[1]
         return level * (1.0 + vv[0] / (1.0 + q * q)) * math.tanh(v / eps)
+    if vid == V_STRIBECK_ASYMMETRIC:
+        q = v / vv[1]
+        sign = math.tanh(v / eps)
+        share = vv[2] + (1.0 - vv[2]) * 0.5 * (1.0 + sign)
+        return level * (1.0 + vv[0] * share * math.exp(-q * q)) * sign
     return level * math.tanh(v / eps)
 
 
@@ -158,6 +178,8 @@ def _station(k, vid, w_tp, a_tp, x, u, th, c, vv, o):
     carriage = nut
     if vid == V_LOAD_FOLLOW:
         force -= 0.5 * vv[0] * (nut - c[K_KY] * u[0])
+    elif vid == V_LOAD_OFFSET:
+        force += vv[0]
     elif vid == V_DEADZONE and vv[0] > 0.0:
         carriage = min(max(x[o + S_CARRIAGE1 + k], nut - vv[0]), nut + vv[0])
         ramp = min(max((abs(nut - carriage) / vv[0] - 1.0 + CONTACT_RAMP) / CONTACT_RAMP, 0.0), 1.0)
@@ -174,6 +196,12 @@ def _station(k, vid, w_tp, a_tp, x, u, th, c, vv, o):
         if abs(xi) < 1.0:
             c_ts += vv[0] * 0.5 * (1.0 + math.cos(math.pi * xi))
     m_er = -c[K_RSC] * force * contact
+    if vid == V_LOAD_EFFICIENCY:
+        opposing = 0.5 * (1.0 + math.tanh(m_er * w_u / EFFICIENCY_POWER))
+        c_ts += (vv[0] * c[K_R] * (math.sqrt(force * force + LOAD_SMOOTHING ** 2) - LOAD_SMOOTHING)
+                 * (vv[1] + (1.0 - vv[1]) * opposing))
+    elif vid == V_POSITION_SENSOR:   # the loops and the record see the sensor's reading
+        carriage += vv[0] * math.sin(TWO_PI * carriage / vv[1] + vv[2 + k])
     m_tser = th[T_BTS1 + s] * w_u + _coulomb(c_ts, w_u, eps, vid, vv) + m_er
     m_uer = ratio * m_tser * c[K_INVCB1 + k] + th[T_BU1 + s] * w_u + _coulomb(th[T_CU1 + s], w_u, eps, vid, vv)
     return w_u, m_er, m_tser, m_uer, carriage
@@ -312,15 +340,22 @@ def _rhs(concept_id, vid, x, u, th, c, vv, dx, y, outputs):
 @njit(cache=True, error_model="numpy")
 def _run(concept_id, vid, th, c, vv, inputs, h, n_sub, out):
     """Fixed-step RK4 from rest over held inputs (n_samples, 4); outputs (n_samples, n_outputs)
-    at t_k from x(t_k) and u_k. The output play is projected after every step."""
+    at t_k from x(t_k) and u_k. The output play is projected after every step; the friction
+    warm-up's loss factor is held over each sample interval, as the inputs are."""
     o = concept_id  # LT/HS carries I_A ahead of the common states
     x = np.zeros(N_STATE)
     xt = np.empty(N_STATE)
     k1, k2, k3, k4 = np.empty(N_STATE), np.empty(N_STATE), np.empty(N_STATE), np.empty(N_STATE)
     scratch = np.empty(out.shape[1])
     n = inputs.shape[0]
+    cold = th
+    th = cold.copy()
     for k in range(n):
         u = inputs[k]
+        if vid == V_WARM_UP:
+            factor = 1.0 - vv[0] * (1.0 - math.exp(-k * n_sub * h / vv[1]))
+            for i in LOSS_COEFFICIENTS:
+                th[i] = cold[i] * factor
         _rhs(concept_id, vid, x, u, th, c, vv, k1, out[k], True)
         if k == n - 1:
             break

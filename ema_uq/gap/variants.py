@@ -45,8 +45,8 @@ import numpy as np
 
 from ..experiments import Experiment, Measurement, add_noise, deploy_retract, validation
 from ..models import get_model
-from .variant_catalogue import (CONCEPTS, VARIANTS, Variant, VariantError, _check_concept, check_variant_parameters,
-                                get_variant)
+from .variant_catalogue import (CONCEPTS, UNSEEN_VARIANTS, VARIANTS, Variant, VariantError, _check_concept,
+                                check_variant_parameters, get_variant)
 from .variant_kernel import KERNEL_OUTPUTS, _kernel_constants, _kernel_parameters, _kernel_values, _run
 
 # The variants and the kernel's layouts stay importable from here, where they were defined
@@ -71,15 +71,34 @@ def delay_hermite(values: np.ndarray, tau: float, dt: float) -> np.ndarray:
     values = np.asarray(values, dtype=float)
     if tau == 0.0:
         return values.copy()
+    src = np.arange(values.shape[0]) - tau / dt
+    out = read_between_samples(values, src)
+    out[src <= 0.0] = values[0]
+    return out
+
+
+def read_between_samples(values: np.ndarray, src: np.ndarray) -> np.ndarray:
+    """Every column of (n_samples, n_channels) ``values`` read at the fractional sample indices
+    ``src`` by cubic Hermite (Catmull-Rom) interpolation (indices outside the record clamp)."""
     n = values.shape[0]
-    src = np.arange(n) - tau / dt
     j = np.floor(src).astype(np.int64)
     f = (src - j)[:, None]
     p0, p1, p2, p3 = (values[np.clip(j + d, 0, n - 1)] for d in (-1, 0, 1, 2))
     m1, m2 = 0.5 * (p2 - p0), 0.5 * (p3 - p1)
-    out = ((2 * f ** 3 - 3 * f ** 2 + 1) * p1 + (f ** 3 - 2 * f ** 2 + f) * m1
-           + (-2 * f ** 3 + 3 * f ** 2) * p2 + (f ** 3 - f ** 2) * m2)
-    out[src <= 0.0] = values[0]
+    return ((2 * f ** 3 - 3 * f ** 2 + 1) * p1 + (f ** 3 - 2 * f ** 2 + f) * m1
+            + (-2 * f ** 3 + 3 * f ** 2) * p2 + (f ** 3 - f ** 2) * m2)
+
+
+def sample_hold(values: np.ndarray, period: float, offset: float, dt: float) -> np.ndarray:
+    """Every column of ``values`` (recorded at t_k = k dt) as a sensor that samples at
+    offset x period + j x period and holds: at t_k the value at the last sensor instant
+    (the first recorded value before the first instant)."""
+    values = np.asarray(values, dtype=float)
+    t = np.arange(values.shape[0]) * dt
+    first = offset * period
+    instants = first + period * np.floor((t - first) / period)
+    out = read_between_samples(values, instants / dt)
+    out[t < first] = values[0]
     return out
 
 
@@ -119,6 +138,8 @@ def _measure(concept: str, variant: Variant | None, params: Mapping[str, float],
         return delay_hermite(out, params["tau"], dt)
     if variant.name == "sensor_delay_allpass":
         return delay_allpass(out, params["tau"], dt)
+    if variant.name == "sensor_delay_sample_hold":
+        return sample_hold(out, params["period"], params["offset"], dt)
     if variant.name == "current_sensor_error":
         out = out.copy()
         k = KERNEL_OUTPUTS[concept].index("I_A")
@@ -397,8 +418,8 @@ def visibility(concept: str, variant: str, params: Mapping[str, float], *, exper
     return dict(zip(chosen, map(float, excess)))
 
 
-__all__ = ["CONCEPTS", "FAMILIES", "REALISTIC_CHANNELS", "STRESS_CONSTANTS", "STRESS_RANGES", "VARIANTS", "Variant",
-           "VariantError", "VariantParameter", "check_stress", "check_variant_parameters", "coloured_noise",
-           "delay_allpass", "delay_hermite", "draw_stress", "draw_variant_parameters", "get_variant", "make_records",
-           "perturbed_base", "quantise", "record_channels", "shape_command", "simulate_variant", "validation_scaled",
-           "visibility"]
+__all__ = ["CONCEPTS", "FAMILIES", "REALISTIC_CHANNELS", "STRESS_CONSTANTS", "STRESS_RANGES", "UNSEEN_VARIANTS",
+           "VARIANTS", "Variant", "VariantError", "VariantParameter", "check_stress", "check_variant_parameters",
+           "coloured_noise", "delay_allpass", "delay_hermite", "draw_stress", "draw_variant_parameters", "get_variant",
+           "make_records", "perturbed_base", "quantise", "read_between_samples", "record_channels", "sample_hold", "shape_command",
+           "simulate_variant", "validation_scaled", "visibility"]
