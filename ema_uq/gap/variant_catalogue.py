@@ -327,7 +327,7 @@ def draw_variant_parameters(name: str, rng: np.random.Generator, concept: str | 
                 values[p.name] = float(rng.uniform(0.0, TWO_PI))
             else:
                 values[p.name] = float(rng.uniform(low, high))
-        if variant.family != "sensor_delay":
+        if "tau" not in values or variant.family != "sensor_delay":
             return values
         lag = values["tau"] / 0.01
         if abs(lag - round(lag)) >= DELAY_CLEARANCE:

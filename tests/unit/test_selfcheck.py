@@ -325,3 +325,20 @@ def test_a_refactor_is_attested_only_when_stored_outcomes_rerun_identically(tmp_
     assert bench.check_sources(attested, root=root) is None
     monkeypatch.setattr(selfcheck, "run_case", lambda *a, **k: pytest.fail("diagnosed a stored case again"))
     bench.protocol_main(protocol, "evaluation", root=root, out_dir=out)              # continues the same outcomes
+
+
+def test_unseen_cases_are_new_records_of_the_unseen_variants_only():
+    from ema_uq.gap.variants import UNSEEN_VARIANTS
+
+    unseen = selfcheck.unseen_cases(5301)
+    inside = [v for v, var in UNSEEN_VARIANTS.items() if var.family is not None]
+    assert len(unseen) == 2 * 2 * (len(UNSEEN_VARIANTS) + len(inside))
+    assert {c.variant for c in unseen} == set(UNSEEN_VARIANTS)
+    assert {c.kind for c in unseen if c.family is None} == {"out_of_catalogue"}
+    for case in (c for c in unseen if c.kind == "left_out"):
+        assert case.variant in inside and case.family == UNSEEN_VARIANTS[case.variant].family
+        assert not set(case.candidates) & set(selfcheck.catalogue_families(case.concept)[case.family])
+    # no record of the self-check is drawn again: every case seed differs from those of its cases
+    assert not {c.seed for c in unseen} & {c.seed for c in selfcheck.build_cases(seed=5301)}
+    assert len({c.seed for c in unseen}) == len(unseen)
+    assert not {c.variant for c in selfcheck.build_cases(seed=5301)} & set(UNSEEN_VARIANTS)

@@ -57,10 +57,10 @@ def nominal_outputs():
     return experiment, out
 
 
-@pytest.mark.parametrize("name", list(V.VARIANTS))
+@pytest.mark.parametrize("name", list(V.VARIANTS) + list(V.UNSEEN_VARIANTS))
 def test_every_variant_is_visible_at_its_weakest(name, nominal_outputs):
     experiment, nominal = nominal_outputs
-    variant = V.VARIANTS[name]
+    variant = V.get_variant(name)
     for concept in ("htls", "lths"):
         index, clean = nominal[concept]
         varied = V.simulate_variant(concept, experiment, None, name, variant.weakest(concept))[:, index]
@@ -74,7 +74,9 @@ def test_families_and_descriptions():
     assert {v.family for v in V.VARIANTS.values()} - {None} == set(V.FAMILIES)
     assert sum(v.family is None for v in V.VARIANTS.values()) >= 3
     assert {v.family for v in V.VARIANTS.values() if v.name.startswith("backlash")} == {"backlash"}
-    for v in V.VARIANTS.values():
+    assert {v.family for v in V.UNSEEN_VARIANTS.values()} - {None} <= set(V.FAMILIES)
+    assert not set(V.UNSEEN_VARIANTS) & set(V.VARIANTS)
+    for v in [*V.VARIANTS.values(), *V.UNSEEN_VARIANTS.values()]:
         assert v.description
         for p in v.parameters:
             for concept in ("htls", "lths"):
@@ -85,14 +87,14 @@ def test_families_and_descriptions():
 
 def test_draws_follow_their_ranges():
     rng = np.random.default_rng(7)
-    for name, variant in V.VARIANTS.items():
+    for name, variant in [*V.VARIANTS.items(), *V.UNSEEN_VARIANTS.items()]:
         for _ in range(20):
             values = V.draw_variant_parameters(name, rng, "lths")
             assert list(values) == list(variant.parameter_names)
             for p in variant.parameters:
                 low, high = p.draw_range("lths")
                 assert low <= values[p.name] <= high
-            if variant.family == "sensor_delay":
+            if "tau" in values and variant.family == "sensor_delay":
                 lag = values["tau"] / 0.01
                 assert abs(lag - round(lag)) >= V.DELAY_CLEARANCE
     log_taus = np.log([V.draw_variant_parameters("sensor_delay_hermite", rng)["tau"] for _ in range(400)])
@@ -224,3 +226,76 @@ def test_command_shaping_is_a_first_order_lag():
     k = np.arange(100)
     np.testing.assert_allclose(out, np.where(k == 0, 0.0, 1.0 - np.exp(-k * dt / tau)), atol=1e-12)
     np.testing.assert_array_equal(V.shape_command(step, 0.0, dt), step)
+
+
+# --- the variants written after method version 2 was frozen ---------------------------------
+def _outputs(concept, name=None, params=None, experiment=None):
+    model = get_model(concept)
+    out = V.simulate_variant(concept, experiment or validation(), None, name, params)
+    return {ch: out[:, i] for i, ch in enumerate(model.outputs)}
+
+
+def test_sample_hold_reads_each_channel_at_the_last_sensor_instant():
+    dt, period, offset = 0.01, 0.037, 0.4
+    ramp = np.column_stack([np.arange(200) * dt, 3.0 - 2.0 * np.arange(200) * dt])
+    held = V.sample_hold(ramp, period, offset, dt)
+    t = np.arange(200) * dt
+    first = offset * period
+    last = first + period * np.floor((t - first) / period)
+    after = t >= first
+    assert np.allclose(held[after, 0], last[after]) and np.allclose(held[after, 1], 3.0 - 2.0 * last[after])
+    assert np.all(held[~after] == ramp[0])
+    lag = t[after] - last[after]
+    assert 0.0 <= lag.min() and lag.max() < period and abs(lag.mean() - period / 2) < 0.1 * period
+
+
+@pytest.mark.parametrize("concept", ["htls", "lths"])
+def test_unseen_variants_reduce_to_their_parents_or_the_nominal_model(concept):
+    nominal = _outputs(concept)
+    linear = _outputs(concept, "load_friction_linear", {"mu": 0.01})
+    assert all(np.array_equal(a, b) for a, b in zip(linear.values(),
+                                                     _outputs(concept, "load_friction_efficiency",
+                                                              {"mu": 0.01, "aid": 1.0}).values()))
+    for name, params in (("friction_warm_up", {"drop": 0.0, "tau": 10.0}),
+                         ("position_sensor_nonlinearity", {"amplitude": 0.0, "wavelength": 0.05, "phase1": 1.0,
+                                                           "phase2": 2.0}),
+                         ("load_force_offset", {"offset": 0.0, "direction": 1.0})):
+        assert all(np.array_equal(nominal[ch], v) for ch, v in _outputs(concept, name, params).items()), name
+
+
+@pytest.mark.parametrize("concept", ["htls", "lths"])
+def test_unseen_variants_act_as_described(concept):
+    nominal = _outputs(concept)
+    # the load aiding the motion costs less friction than the load opposing it
+    aided = _outputs(concept, "load_friction_efficiency", {"mu": 0.01, "aid": 0.2})
+    full = _outputs(concept, "load_friction_linear", {"mu": 0.01})
+    gap_aided = np.abs(aided["I_A"] - nominal["I_A"]).mean()
+    assert 0.05 * np.abs(full["I_A"] - nominal["I_A"]).mean() < gap_aided < np.abs(full["I_A"] - nominal["I_A"]).mean()
+    # a sensor reads y + A sin(phase) at the carriage's rest position 0
+    reading = _outputs(concept, "position_sensor_nonlinearity",
+                       {"amplitude": 1e-3, "wavelength": 0.05, "phase1": 0.7, "phase2": 2.0})
+    assert reading["y1"][0] == pytest.approx(1e-3 * math.sin(0.7)) and reading["y2"][0] == pytest.approx(1e-3 * math.sin(2.0))
+    # a force offset of either sign moves the current the opposite ways
+    up = _outputs(concept, "load_force_offset", {"offset": 1000.0, "direction": 1.0})["I_A"] - nominal["I_A"]
+    down = _outputs(concept, "load_force_offset", {"offset": 1000.0, "direction": -1.0})["I_A"] - nominal["I_A"]
+    assert abs(up.mean()) > 1e-3 and abs(up.mean() + down.mean()) < 0.1 * abs(up.mean())
+    # the warm-up lowers the losses more the longer the record runs
+    warm = _outputs(concept, "friction_warm_up", {"drop": 0.2, "tau": 5.0})["I_A"] - nominal["I_A"]
+    n = len(warm)
+    assert np.abs(warm[: n // 8]).mean() < 0.5 * np.abs(warm[-n // 2:]).mean()
+
+
+def test_asymmetric_stribeck_lowers_the_breakaway_of_the_negative_direction_only():
+    from ema_uq.gap.variant_kernel import _coulomb
+    from ema_uq.gap.variant_catalogue import V_STRIBECK_ASYMMETRIC
+
+    vv = np.array([2.0, 1.0, 0.3, 0, 0, 0, 0, 0.0])
+    eps, level, v = 0.05, 1.5, 0.4
+    bump = math.exp(-v * v)
+    positive = _coulomb(level, v, eps, V_STRIBECK_ASYMMETRIC, vv)
+    negative = _coulomb(level, -v, eps, V_STRIBECK_ASYMMETRIC, vv)
+    sign = math.tanh(v / eps)
+    share_neg = 0.3 + 0.7 * 0.5 * (1.0 - sign)
+    assert positive == pytest.approx(level * (1.0 + 2.0 * (0.3 + 0.7 * 0.5 * (1.0 + sign)) * bump) * sign)
+    assert negative == pytest.approx(-level * (1.0 + 2.0 * share_neg * bump) * sign)
+    assert abs(negative) < abs(positive)
