@@ -1,0 +1,88 @@
+"""Gap diagnosis: the frozen method run once on mechanisms it was never run on.
+
+The self-check's variants shaped method versions 1 and 2 (the catalogue once gained forms that
+mirror some of them), and its evaluation blocks draw new records of the same variants. This
+script runs the frozen method on the variants written after version 2 was frozen
+(:data:`ema_uq.gap.variant_catalogue.UNSEEN_VARIANTS`): three other forms of catalogue families
+(direction-dependent ball-screw efficiency, direction-asymmetric Stribeck friction,
+sample-and-hold sensors) and three mechanisms outside the catalogue (friction warm-up during a
+record, a periodic linearity error of the position sensors, a force offset of the load rig),
+each per concept and sensor set, the in-catalogue ones also with their family left out.
+
+The protocol (``benchmarks/gap_unseen.yaml``, committed before the run) fixes the seed, the
+cases and the scoring; the run refuses unless the diagnosis sources hash to a value the method
+protocol (``benchmarks/gap_protocol.yaml``) accepts, and it uses that protocol's settings. Each
+case's outcome is kept under ``results/<sources hash>/seed<S>/`` (a rerun resumes and diagnoses
+nothing twice); the scores go to ``<results>.json`` and are printed beside those of the method's
+evaluation block.
+
+Usage: python benchmarks/gap_unseen.py [--protocol benchmarks/gap_unseen.yaml] [--jobs N]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import yaml
+
+from ema_uq.gap.selfcheck import SelfCheckResult, self_check, unseen_cases
+from ema_uq.gap.variant_catalogue import UNSEEN_VARIANTS
+from gap import ROOT, accepted_hashes, check_sources, hash_sources, load_protocol, protocol_settings, side_by_side
+
+
+def load_unseen_protocol(path: Path) -> dict:
+    """The protocol, checked against the variants it names (a variant renamed or moved to
+    another family since it was written stops the run)."""
+    with open(path, encoding="utf-8") as fh:
+        protocol = yaml.safe_load(fh)
+    if not isinstance(protocol, dict) or "variants" not in protocol or "seed" not in protocol:
+        raise SystemExit(f"{path}: not an unseen-variant protocol (needs seed and variants)")
+    named = {k: v.get("family") for k, v in protocol["variants"].items()}
+    written = {k: v.family for k, v in UNSEEN_VARIANTS.items()}
+    if named != written:
+        raise SystemExit(f"{path} names the variants {named}, the code has {written}: the protocol no longer "
+                         "describes the cases; write a new protocol with a new seed")
+    return protocol
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--protocol", default=str(ROOT / "benchmarks" / "gap_unseen.yaml"), metavar="YAML")
+    parser.add_argument("--jobs", type=int, default=1, help="worker processes (results do not depend on it)")
+    args = parser.parse_args()
+    protocol = load_unseen_protocol(Path(args.protocol))
+    method = load_protocol(ROOT / protocol["method_protocol"])
+    problem = check_sources(method)
+    if problem:
+        raise SystemExit(problem)
+    current = hash_sources(ROOT)[0]
+    if current in accepted_hashes(method):
+        current = method["sources"]["sha256"]
+    cases = unseen_cases(int(protocol["seed"]), protocol["concepts"], protocol["sensors"])
+    if len(cases) != int(protocol["n_cases"]):
+        raise SystemExit(f"{len(cases)} cases built, the protocol states {protocol['n_cases']}")
+    results = ROOT / protocol["results"]
+    result = self_check(cases=cases, seed=int(protocol["seed"]), settings=protocol_settings(method), jobs=args.jobs,
+                        cache=results / current[:12] / f"seed{protocol['seed']}",
+                        progress=lambda line: print(line, flush=True))
+    result = SelfCheckResult(result.outcomes, result.seed, False, result.wall_time_s,
+                             {**result.settings, "protocol": protocol, "sources_sha256": current},
+                             result.provenance)
+    with open(results.with_suffix(".json"), "w", encoding="utf-8") as fh:
+        json.dump(result.to_json(), fh, indent=1)
+    print()
+    print(result.summary())
+    columns = {}
+    evaluation = results.parent / "evaluation.json"
+    if evaluation.is_file():
+        with open(evaluation, encoding="utf-8") as fh:
+            block = json.load(fh)
+            columns[f"evaluation {block['seed']}"] = SelfCheckResult.from_json(block)
+    columns[f"unseen variants {protocol['seed']}"] = result
+    print("\n[[Frozen method: self-check variants vs variants written after the freeze]]")
+    print(side_by_side(columns))
+
+
+if __name__ == "__main__":
+    main()
