@@ -192,6 +192,17 @@ def _check_whole_number(name: str, value: Any, minimum: int) -> None:
         raise SelfCheckError(f"{name} must be a whole number >= {minimum}, got {value!r}")
 
 
+def _check_concepts_and_sensors(concepts: Sequence[str], sensors: Sequence[str]) -> None:
+    for concept in concepts:
+        if concept not in CONCEPTS:
+            raise SelfCheckError(f"no independent variants for concept {concept!r}; choose from {', '.join(CONCEPTS)}")
+    for s in sensors:
+        if s not in SENSOR_SETS:
+            raise SelfCheckError(f"unknown sensor set {s!r}; choose from {', '.join(SENSOR_SETS)}")
+    if not concepts or not sensors:
+        raise SelfCheckError("the self-check needs at least one concept and one sensor set")
+
+
 def build_cases(concepts: Sequence[str] = CONCEPTS, *, seed: int = DEFAULT_SEED, quick: bool = False,
                 sensors: Sequence[str] = SENSOR_SETS, none_per_set: int = NONE_PER_SET,
                 kinds: Sequence[str] = KINDS, none_first: int = 0) -> list[Case]:
@@ -208,14 +219,7 @@ def build_cases(concepts: Sequence[str] = CONCEPTS, *, seed: int = DEFAULT_SEED,
         raise SelfCheckError(f"unknown case kind {unknown[0]!r}; choose from {', '.join(KINDS)}")
     if not kinds:
         raise SelfCheckError(f"give at least one case kind of {', '.join(KINDS)}")
-    for concept in concepts:
-        if concept not in CONCEPTS:
-            raise SelfCheckError(f"no independent variants for concept {concept!r}; choose from {', '.join(CONCEPTS)}")
-    for s in sensors:
-        if s not in SENSOR_SETS:
-            raise SelfCheckError(f"unknown sensor set {s!r}; choose from {', '.join(SENSOR_SETS)}")
-    if not concepts or not sensors:
-        raise SelfCheckError("the self-check needs at least one concept and one sensor set")
+    _check_concepts_and_sensors(concepts, sensors)
     _check_whole_number("none_per_set", none_per_set, 0)
     _check_whole_number("none_first", none_first, 0)
     if quick:
@@ -238,13 +242,11 @@ def unseen_cases(seed: int, concepts: Sequence[str] = CONCEPTS, sensors: Sequenc
     (:data:`~ema_uq.gap.variant_catalogue.UNSEEN_VARIANTS`), per concept x sensor set: every one
     once, and every in-catalogue one once more with its family left out. Their slots (300 + i,
     400 + i) are none of the self-check's, so no record repeats one of its cases."""
+    concepts, sensors = list(concepts), list(sensors)
+    _check_concepts_and_sensors(concepts, sensors)
     cases = []
     for concept in concepts:
-        if concept not in CONCEPTS:
-            raise SelfCheckError(f"no independent variants for concept {concept!r}; choose from {', '.join(CONCEPTS)}")
         for s in sensors:
-            if s not in SENSOR_SETS:
-                raise SelfCheckError(f"unknown sensor set {s!r}; choose from {', '.join(SENSOR_SETS)}")
             cases += [_case(seed, concept, s, v, unseen=True) for v in UNSEEN_VARIANTS]
             cases += [_case(seed, concept, s, v, left_out=True, unseen=True)
                       for v, var in UNSEEN_VARIANTS.items() if var.family is not None]
