@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from ema_uq.cli import main as cli_main
 from ema_uq.gap import selfcheck
@@ -342,3 +343,23 @@ def test_unseen_cases_are_new_records_of_the_unseen_variants_only():
     assert not {c.seed for c in unseen} & {c.seed for c in selfcheck.build_cases(seed=5301)}
     assert len({c.seed for c in unseen}) == len(unseen)
     assert not {c.variant for c in selfcheck.build_cases(seed=5301)} & set(UNSEEN_VARIANTS)
+
+
+def test_the_unseen_protocol_describes_the_cases_it_runs(tmp_path, monkeypatch):
+    import sys
+
+    # the script imports its sibling benchmarks/gap.py as ``gap``, as when it is run
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    monkeypatch.setitem(sys.modules, "gap", _bench())
+    spec = importlib.util.spec_from_file_location("gap_unseen_bench", ROOT / "benchmarks" / "gap_unseen.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    protocol = module.load_unseen_protocol(ROOT / "benchmarks" / "gap_unseen.yaml")
+    cases = selfcheck.unseen_cases(int(protocol["seed"]), protocol["concepts"], protocol["sensors"])
+    assert len(cases) == protocol["n_cases"]
+    # a protocol that no longer names the code's variants and families stops the run
+    changed = dict(protocol, variants={**protocol["variants"], "stribeck_asymmetric": {"family": "backlash"}})
+    path = tmp_path / "unseen.yaml"
+    path.write_text(yaml.safe_dump(changed), encoding="utf-8")
+    with pytest.raises(SystemExit, match="no longer describes the cases"):
+        module.load_unseen_protocol(path)
