@@ -517,6 +517,9 @@ def run_study(read: Callable[[str, Sequence[int]], list[Measurement]], *, fit_ru
     """
     t0 = time.perf_counter()
     say = progress or (lambda _line: None)
+    # every set's runs are split before any fit, so a set that cannot be split stops the study at once
+    splits = {name: own_runs_split(name, runs_of(name) if runs_of else None, estimation_runs, held_out_runs)
+              for name in record_sets if name != "normal"}
     healthy_held = list(healthy_held_out_runs)
     baseline, healthy_rest = read("normal", healthy_held[:2]), read("normal", healthy_held[2:])
     reference = replace(healthy_reference(read("normal", fit_runs), baseline, healthy_rest), replicates=replicates)
@@ -526,7 +529,7 @@ def run_study(read: Callable[[str, Sequence[int]], list[Measurement]], *, fit_ru
         if name == "normal":
             estimation, held = baseline, healthy_rest
         else:
-            fitted, judged = own_runs_split(name, runs_of(name) if runs_of else None, estimation_runs, held_out_runs)
+            fitted, judged = splits[name]
             estimation, held = read(name, fitted), read(name, judged)
         d = diagnose_record_set(reference, name, estimation, held, seed=seed)
         say(f"{name}: {d.row()['verdict']} {d.row()['effect'] or ''} ({d.result.wall_time_s:.1f} s)")
@@ -547,7 +550,8 @@ def own_runs_split(name: str, held: Sequence[int] | None, estimation_runs: Seque
     runs = sorted({int(r) for r in held})
     if len(runs) < 2:
         raise EmaUqError(f"record set {name} holds {len(runs)} run(s); the diagnosis needs at least two, one to fit "
-                         "the effect and one to judge it on")
+                         "the effect and one to judge it on: add a run to it, or leave it out with the study's "
+                         "data.record_sets")
     half = (len(runs) + 1) // 2
     return tuple(runs[:half]), tuple(runs[half:])
 

@@ -686,8 +686,21 @@ def test_a_set_without_the_asked_runs_is_split_in_its_own_runs():
     assert study.own_runs_split("s", None, *asked) == asked
     assert study.own_runs_split("s", [1, 2, 3, 4], *asked) == ((1, 2), (3, 4))
     assert study.own_runs_split("s", [3, 4, 5, 6, 7], *asked) == ((3, 4, 5), (6, 7))
-    with pytest.raises(ValueError, match="holds 1 run"):
+    with pytest.raises(ValueError, match="holds 1 run.*data.record_sets"):
         study.own_runs_split("s", [4], *asked)
+
+
+def test_a_set_that_cannot_be_split_stops_the_study_before_any_fit():
+    read_calls = []
+
+    def read(name, runs):
+        read_calls.append(name)
+        raise AssertionError("no record is read before every set's split is known")
+
+    with pytest.raises(ValueError, match="record set lonely holds 1 run"):
+        study.run_study(read, record_sets=("normal", "lonely"),
+                        runs_of=lambda name: [4] if name == "lonely" else range(1, 11))
+    assert read_calls == []
 
 
 def test_fault_diagnosis_verb_diagnoses_a_record_set_it_was_never_told_of(tmp_path, monkeypatch, capsys):
