@@ -156,7 +156,7 @@ from .fitting import _effect_parameter_names, _parameter_table
 from .holdout import GapError, _check_inputs, _split
 from .result import CandidateScore, GapResult
 from .strategy import DiagnosisSettings, DiagnosisStrategy, Thresholds, strategy_for
-from .structure import structure_left, where_left
+from .structure import structure_left, where_along_stroke, where_left
 from .verdict import effective_sample_fraction, family_probabilities, verdict as _open_verdict
 
 # The pieces of the procedure stay importable from here, where they lived before they had rooms
@@ -211,6 +211,14 @@ def _healthy_level(run: _Diagnosis, nominal_cells: dict) -> dict | None:
         if levels:
             out[name] = replace(cell, energy=float(max(levels)))
     return out
+
+
+def _where_along_stroke(run: _Diagnosis, before: dict, model) -> list[str]:
+    """The stroke bins that hold the nominal's held-out gap (:func:`ema_uq.gap.structure.where_along_stroke`)."""
+    cells = before["selection"].get("cells", {})
+    bins = run.stroke_bins
+    unit = "" if bins is None else model.unit_of(bins[0])
+    return where_along_stroke(cells, _healthy_level(run, cells), bins, unit, run.strategy.structure)
 
 
 def _cells_left(run: _Diagnosis, ranking: Sequence[CandidateScore], fits: dict, before: dict) -> dict[str, list]:
@@ -379,7 +387,8 @@ def diagnose(
     return GapResult(
         concept=concept, verdict=verdict, effect=effect,
         family=None if effect is None else _family(effect, catalogue[effect]), confidence=confidence, ranking=ranking,
-        where={"channels": loc.where_channels(), "regimes": loc.where_regimes},
+        where={"channels": loc.where_channels(), "regimes": loc.where_regimes,
+               "stroke": _where_along_stroke(run, before, root)},
         gap={**_gap_summary(run, before, after_figures, verdict), "effect_of_after": chosen.effect if chosen else None},
         localization=loc_est, localization_held_out=loc_held, localization_after=loc_after,
         localization_after_held_out=loc_after_held, where_source=where_source,

@@ -19,7 +19,7 @@ from .fitting import _stepped_sets
 from .holdout import _Split
 from .localize import ResidualRecord, complete_runs, noise_std
 from .strategy import DiagnosisSettings, DiagnosisStrategy
-from .structure import cell_energies, cell_masks
+from .structure import cell_energies, cell_masks, stroke_bins
 
 Z_HELD_OUT = 5.0
 SHRINK_BLOCKS = 20          # contiguous blocks of the scoring part resampled for the shrink's standard error
@@ -57,6 +57,7 @@ class _Diagnosis:
     seed: int | None = None
     ceiling: dict[str, dict[str, Any]] | None = None   # held-out figures of the replicate prediction
     masks: dict[str, list[np.ndarray]] | None = None   # cell masks of the selection part (nominal outputs)
+    stroke_bins: Any = None                             # (stroke output, bin edges) of those masks
     healthy_cells: dict[str, Any] | None = None         # cells of the reference on the strategy's healthy records
     predictable: Any = None                             # what the state predicts of the nominal's held-out gap
     allowance: Any = None                               # the model-form allowance fitted in every model (or None)
@@ -147,6 +148,7 @@ class _Diagnosis:
             constants = self.strategy.constants_of(self.data.held[0])
             self.masks = cell_masks(selection, model, theta,
                                     model.constants_vector() if constants is None else constants)
+            self.stroke_bins = stroke_bins(selection, model)
         out["selection"]["cells"] = cell_energies(selection, self.data.held_channels, self.data.held_spread,
                                                   self.masks)
         return out

@@ -195,6 +195,7 @@ class GapResult:
                  f"    held-out data      = {self.held_out}",
                  f"    where (channels)   = {', '.join(self.where['channels']) or '-'}  ({self.where_source} data)",
                  f"    where (regimes)    = {', '.join(self.where['regimes']) or '-'}",
+                 f"    where (stroke)     = {'; '.join(self.where.get('stroke', [])) or '-'}",
                  f"    gap ({self.gap['metric'].split(':')[0]}) {self.gap['before']:.4g} -> {self.gap['after']:.4g}"
                  f"; plain NRMSE {self.gap['nrmse_before']:.4g} -> {self.gap['nrmse_after']:.4g}",
                  *self._shrink_line(),
@@ -264,7 +265,8 @@ class GapResult:
             "family": self.family,
             "confidence": self.confidence,
             "ranking": [c.to_json() for c in self.ranking],
-            "where": {"channels": list(self.where["channels"]), "regimes": list(self.where["regimes"])},
+            "where": {"channels": list(self.where["channels"]), "regimes": list(self.where["regimes"]),
+                      "stroke": list(self.where.get("stroke", []))},
             "concept": self.concept,
             "gap": self.gap,
             "effect_parameters": self.effect_parameters,

@@ -106,9 +106,11 @@ class LeftCell:
         return {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in asdict(self).items()}
 
     def describe(self) -> str:
-        closed = 1.0 - np.sqrt(max(self.after - self.floor, 0.0) / (self.before - self.floor)) \
-            if self.before > self.floor else float("nan")
         of = "of the excess power" if self.kind.startswith("band:") else "of the gap"
+        if self.before <= self.floor:
+            # nothing stood above the healthy level here before: the candidate put it there
+            return f"{self.name} (holds {self.share:.0%} {of}, made by the candidate, z {self.z_after:.1f})"
+        closed = 1.0 - np.sqrt(max(self.after - self.floor, 0.0) / (self.before - self.floor))
         return f"{self.name} (holds {self.share:.0%} {of}, closed {closed:.0%}, z {self.z_after:.1f})"
 
 
@@ -117,6 +119,19 @@ def _stroke(model, outputs: np.ndarray) -> np.ndarray | None:
         if name in model.outputs:
             return outputs[:, model.outputs.index(name)]
     return None
+
+
+def _stroke_edges(strokes: Sequence[np.ndarray]) -> np.ndarray:
+    return np.quantile(np.concatenate(strokes), np.linspace(0.0, 1.0, STROKE_BINS + 1))
+
+
+def stroke_bins(records: Sequence[ResidualRecord], model) -> tuple[str, np.ndarray] | None:
+    """(stroke output, the ``STROKE_BINS`` + 1 edges of the stroke bins of :func:`cell_masks`)
+    of the same records, or None when the model has no stroke output."""
+    strokes = [_stroke(model, r.outputs) for r in records]
+    if not strokes or any(s is None for s in strokes):
+        return None
+    return next(n for n in STROKE_OUTPUTS if n in model.outputs), _stroke_edges(strokes)
 
 
 def cell_masks(records: Sequence[ResidualRecord], model, theta: np.ndarray | None = None,
@@ -128,8 +143,7 @@ def cell_masks(records: Sequence[ResidualRecord], model, theta: np.ndarray | Non
     masks: dict[str, list[np.ndarray]] = {}
     strokes = [_stroke(model, r.outputs) for r in records]
     if all(s is not None for s in strokes):
-        joined = np.concatenate(strokes)
-        edges = np.quantile(joined, np.linspace(0.0, 1.0, STROKE_BINS + 1))
+        edges = _stroke_edges(strokes)
         if edges[-1] > edges[0]:
             for k in range(STROKE_BINS):
                 upper = edges[k + 1] if k < STROKE_BINS - 1 else np.inf
@@ -266,6 +280,37 @@ def structure_left(before: Mapping[str, CellEnergy], after: Mapping[str, CellEne
         if (cell.z > settings.z_cell and share >= settings.min_share and excess_after > keep * excess_before):
             left.append(LeftCell(name, cell.kind, before[name].energy, cell.energy, base, cell.z, float(share)))
     return sorted(left, key=lambda c: -c.share)
+
+
+def where_along_stroke(cells: Mapping[str, CellEnergy], floor: Mapping[str, CellEnergy] | None = None,
+                       bins: tuple[str, np.ndarray] | None = None, unit: str = "",
+                       settings: StructureSettings = StructureSettings()) -> list[str]:
+    """Where along the stroke the nominal model's held-out gap lies, for a reader: the stroke
+    bins whose energy above the healthy level ``floor`` stands out of the noise (z >
+    ``z_cell``) and holds at least twice the share of the gap that the bin's share of the
+    samples would carry (the bins are equally populated, so a gap spread along the stroke
+    names none), largest share first, each with its span of the stroke output (``bins``, from
+    :func:`stroke_bins`, in ``unit``). Only read out, never part of the verdict."""
+    if not cells or "all" not in cells:
+        return []
+
+    def level(name):
+        return max(floor[name].energy, 0.0) if floor is not None and name in floor else 0.0
+
+    total = cells["all"].energy - level("all")
+    if total <= 0:
+        return []
+    found = []
+    for name, cell in cells.items():
+        if not name.startswith("stroke:") or cell.sd <= 0:
+            continue
+        excess = cell.energy - level(name)
+        share = excess / total
+        if excess / cell.sd > settings.z_cell and share >= 2.0 / STROKE_BINS:
+            k = int(name.split(":")[1].split("/")[0])
+            span = "" if bins is None else f"{bins[0]} {bins[1][k - 1]:.4g}-{bins[1][k]:.4g} {unit}".rstrip() + ", "
+            found.append((share, f"{name} ({span}holds {share:.0%} of the gap, z {excess / cell.sd:.1f})"))
+    return [text for _, text in sorted(found, key=lambda f: -f[0])]
 
 
 def where_left(cells: Sequence[LeftCell]) -> dict[str, list[str]]:

@@ -71,7 +71,9 @@ def _gap_section(study: dict, results: Path) -> str:
     parts = [f"<p>Verdict <b>{verdict}</b>"
              + (f" (confidence {html.escape(str(gap['confidence']))})" if gap.get("confidence") else "") + ". "
              + f"The gap lies in channels {html.escape(', '.join(gap['where'].get('channels', [])) or '–')} and "
-               f"regimes {html.escape(', '.join(gap['where'].get('regimes', [])) or '–')}.</p>"]
+               f"regimes {html.escape(', '.join(gap['where'].get('regimes', [])) or '–')}"
+             + (f"; along the stroke in {html.escape('; '.join(gap['where']['stroke']))}"
+                if gap["where"].get("stroke") else "") + ".</p>"]
     if not is_measured(study["concept"]):
         truth = ", ".join(hidden) if hidden else "none (the rig-like records are nominal-model data)"
         parts.append(f"<p>Check of this study: the rig-like records were generated with the hidden effect(s) "

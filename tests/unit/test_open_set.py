@@ -7,8 +7,8 @@ import pytest
 from ema_uq.gap.localize import ResidualRecord
 from ema_uq.gap.result import CandidateScore
 from ema_uq.gap.strategy import Thresholds
-from ema_uq.gap.structure import (CellEnergy, StructureSettings, cell_energies, cell_masks, structure_left,
-                                  where_left)
+from ema_uq.gap.structure import (CellEnergy, StructureSettings, cell_energies, cell_masks, stroke_bins,
+                                  structure_left, where_along_stroke, where_left)
 from ema_uq.gap.verdict import (MARGIN_EVIDENCE, effective_sample_fraction, family_probabilities, verdict,
                                 within_margin)
 from ema_uq.models import get_model
@@ -141,6 +141,40 @@ def test_a_stroke_localised_residual_shows_in_its_stroke_cell_and_a_periodic_one
     cells = cell_energies(records, ["a", "b"], np.ones(2), cell_masks(records, model))
     assert cells["band:b:0.1-0.5fs"].z > 10
     assert abs(cells["band:a:0.1-0.5fs"].z) < 5 and abs(cells["band:b:0-0.02fs"].z) < 5
+
+
+def test_where_along_the_stroke_names_a_bin_that_holds_the_gap_and_not_a_gap_spread_along_it():
+    rng = np.random.default_rng(6)
+    n = 6000
+    y1 = 0.05 * np.sin(2 * np.pi * np.arange(n) / 3000.0)
+    noise = 0.1 * rng.normal(size=(n, 2))
+    local = noise.copy()
+    local[y1 > np.quantile(y1, 0.75), 1] += 0.2
+    records, model = _records(local, y1)
+    bins = stroke_bins(records, model)
+    assert bins[0] == "y1" and bins[1][0] == pytest.approx(y1.min()) and bins[1][-1] == pytest.approx(y1.max())
+    cells = cell_energies(records, ["a", "b"], np.ones(2), cell_masks(records, model))
+    where = where_along_stroke(cells, None, bins, "m")
+    assert len(where) == 1 and where[0].startswith(f"stroke:4/4 (y1 {bins[1][3]:.4g}-{bins[1][4]:.4g} m, holds")
+    # the same error everywhere along the stroke: no bin holds twice its share
+    spread = noise.copy()
+    spread[:, 1] += 0.2
+    records, model = _records(spread, y1)
+    assert where_along_stroke(cell_energies(records, ["a", "b"], np.ones(2), cell_masks(records, model)), None) == []
+    # what stands no higher than the healthy level is no place of the gap
+    assert where_along_stroke(cells, cells) == []
+
+
+def test_a_cell_that_only_the_candidate_filled_says_so():
+    before = {"all": _cell("all", 100.0, kind="all"), "stroke:1/4": _cell("stroke:1/4", 90.0),
+              "stroke:3/4": _cell("stroke:3/4", 5.0)}
+    after = {"all": _cell("all", 60.0, kind="all"), "stroke:1/4": _cell("stroke:1/4", 10.0),
+             "stroke:3/4": _cell("stroke:3/4", 45.0)}
+    floor = {"all": _cell("all", 0.0, kind="all"), "stroke:1/4": _cell("stroke:1/4", 0.0),
+             "stroke:3/4": _cell("stroke:3/4", 8.0)}
+    left = structure_left(before, after, floor)
+    assert [c.name for c in left] == ["stroke:3/4"]
+    assert "made by the candidate" in left[0].describe() and "nan" not in left[0].describe()
 
 
 # --- is the gap a model error? what the operating state predicts ---------------------------

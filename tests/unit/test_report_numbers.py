@@ -33,3 +33,20 @@ def test_the_gap_finding_writes_units_but_not_a_dimensionless_one():
     text = _gap_finding(gap)
     assert "stribeck_ratio = 0.4994 ± 0.0037;" in text
     assert "stribeck_speed = 1.0006 ± 0.0080 rad/s" in text and "high confidence" in text
+
+
+def test_the_gap_section_says_where_along_the_stroke_when_the_gap_lies_there(tmp_path):
+    from ema_uq import io
+    from ema_uq.report.html_gap import _gap_section
+
+    gap = {"verdict": "unexplained", "effect": None, "family": None, "confidence": "low",
+           "where": {"channels": ["current"], "regimes": ["reversal"],
+                     "stroke": ["stroke:2/4 (position 0.05957-0.09811 m, holds 143% of the gap, z 156.8)"]},
+           "gap": {"before": 0.3, "after": 0.3}, "ranking": []}
+    io.write_json(tmp_path / "gap.json", gap)
+    study = {"concept": "cranfield", "name": "s"}
+    text = _gap_section(study, tmp_path)
+    assert "along the stroke in stroke:2/4 (position 0.05957-0.09811 m" in text
+    gap["where"]["stroke"] = []
+    io.write_json(tmp_path / "gap.json", gap)
+    assert "along the stroke" not in _gap_section(study, tmp_path)
