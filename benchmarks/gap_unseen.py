@@ -9,7 +9,7 @@ sample-and-hold sensors) and three mechanisms outside the catalogue (friction wa
 record, a periodic linearity error of the position sensors, a force offset of the load rig),
 each per concept and sensor set, the in-catalogue ones also with their family left out.
 
-The protocol (``benchmarks/gap_unseen.yaml``, committed before the run) fixes the seed, the
+The protocol (``benchmarks/gap_unseen.yaml``, committed before the run) fixes the seeds, the
 cases and the scoring; the run refuses unless the diagnosis sources hash to a value the method
 protocol (``benchmarks/gap_protocol.yaml``) accepts, and it uses that protocol's settings. Each
 case's outcome is kept under ``results/<sources hash>/seed<S>/`` (a rerun resumes and diagnoses
@@ -36,8 +36,8 @@ def load_unseen_protocol(path: Path) -> dict:
     another family since it was written stops the run)."""
     with open(path, encoding="utf-8") as fh:
         protocol = yaml.safe_load(fh)
-    if not isinstance(protocol, dict) or "variants" not in protocol or "seed" not in protocol:
-        raise SystemExit(f"{path}: not an unseen-variant protocol (needs seed and variants)")
+    if not isinstance(protocol, dict) or "variants" not in protocol or not protocol.get("seeds"):
+        raise SystemExit(f"{path}: not an unseen-variant protocol (needs seeds and variants)")
     named = {k: v.get("family") for k, v in protocol["variants"].items()}
     written = {k: v.family for k, v in UNSEEN_VARIANTS.items()}
     if named != written:
@@ -59,16 +59,21 @@ def main() -> None:
     current = hash_sources(ROOT)[0]
     if current in accepted_hashes(method):
         current = method["sources"]["sha256"]
-    cases = unseen_cases(int(protocol["seed"]), protocol["concepts"], protocol["sensors"])
-    if len(cases) != int(protocol["n_cases"]):
-        raise SystemExit(f"{len(cases)} cases built, the protocol states {protocol['n_cases']}")
     results = ROOT / protocol["results"]
-    result = self_check(cases=cases, seed=int(protocol["seed"]), settings=protocol_settings(method), jobs=args.jobs,
-                        cache=results / current[:12] / f"seed{protocol['seed']}",
-                        progress=lambda line: print(line, flush=True))
-    result = SelfCheckResult(result.outcomes, result.seed, False, result.wall_time_s,
-                             {**result.settings, "protocol": protocol, "sources_sha256": current},
-                             result.provenance)
+    seeds = [int(seed) for seed in protocol["seeds"]]
+    parts = {}
+    for seed in seeds:
+        cases = unseen_cases(seed, protocol["concepts"], protocol["sensors"])
+        if len(cases) != int(protocol["n_cases_per_seed"]):
+            raise SystemExit(f"{len(cases)} cases built, the protocol states {protocol['n_cases_per_seed']}")
+        parts[seed] = self_check(cases=cases, seed=seed, settings=protocol_settings(method), jobs=args.jobs,
+                                 cache=results / current[:12] / f"seed{seed}",
+                                 progress=lambda line, s=seed: print(f"seed {s} {line}", flush=True))
+    first = parts[seeds[0]]
+    result = SelfCheckResult([o for part in parts.values() for o in part.outcomes], seeds[0], False,
+                             sum(part.wall_time_s for part in parts.values()),
+                             {**first.settings, "seeds": seeds, "protocol": protocol, "sources_sha256": current},
+                             first.provenance)
     with open(results.with_suffix(".json"), "w", encoding="utf-8") as fh:
         json.dump(result.to_json(), fh, indent=1)
     print()
@@ -79,7 +84,9 @@ def main() -> None:
         with open(evaluation, encoding="utf-8") as fh:
             block = json.load(fh)
             columns[f"evaluation {block['seed']}"] = SelfCheckResult.from_json(block)
-    columns[f"unseen variants {protocol['seed']}"] = result
+    if len(seeds) > 1:
+        columns.update({f"unseen {seed}": part for seed, part in parts.items()})
+    columns["unseen " + "+".join(map(str, seeds))] = result
     print("\n[[Frozen method: self-check variants vs variants written after the freeze]]")
     print(side_by_side(columns))
 

@@ -355,8 +355,8 @@ def test_the_unseen_protocol_describes_the_cases_it_runs(tmp_path, monkeypatch):
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     protocol = module.load_unseen_protocol(ROOT / "benchmarks" / "gap_unseen.yaml")
-    cases = selfcheck.unseen_cases(int(protocol["seed"]), protocol["concepts"], protocol["sensors"])
-    assert len(cases) == protocol["n_cases"]
+    cases = selfcheck.unseen_cases(int(protocol["seeds"][0]), protocol["concepts"], protocol["sensors"])
+    assert len(cases) == protocol["n_cases_per_seed"]
     # a protocol that no longer names the code's variants and families stops the run
     changed = dict(protocol, variants={**protocol["variants"], "stribeck_asymmetric": {"family": "backlash"}})
     path = tmp_path / "unseen.yaml"
