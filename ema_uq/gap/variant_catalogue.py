@@ -69,7 +69,7 @@ being common on real drives, not for resembling a catalogue form or a known miss
     direction: g = a + (1 - a) (1 + tanh(v/eps)) / 2, ``asymmetry`` a in [0.2, 0.6].
 ``sensor_delay_sample_hold`` (``sensor_delay``)
     Every channel comes from a sensor front end that samples and holds at its own period P,
-    not in step with the recorder: y_m(t_k) = y(s_k), s_k the last sensor instant phase P + j P
+    not in step with the recorder: y_m(t_k) = y(s_k), s_k the last sensor instant offset P + j P
     before t_k (cubic Hermite reading between the recorded samples): a delay that saw-tooths
     between 0 and P about its mean P/2.
 ``friction_warm_up`` (none)
