@@ -277,5 +277,6 @@ def _fault_why(r: dict) -> str:
         parts.append("contenders " + " / ".join(map(html.escape, r["contenders"])))
     if r.get("verdict_reason"):
         parts.append(html.escape(str(r["verdict_reason"])))
+    parts += [f"gap along the stroke: {html.escape(str(c))}" for c in r.get("where_stroke") or []]
     parts += [f"{html.escape(g)}: {html.escape(str(c))}" for g, c in (r.get("where_left") or {}).items()]
     return "<br>".join(parts) or "–"

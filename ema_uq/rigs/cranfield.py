@@ -373,6 +373,7 @@ class RecordSetDiagnosis:
                 "reproducible_share": r.gap.get("reproducible_share"),
                 "reproducible_shrink": r.ranking[0].reproducible_shrink if r.ranking else None,
                 "effect_parameters": r.effect_parameters, "wall_time_s": r.wall_time_s,
+                "where_stroke": list(r.where.get("stroke", [])),
                 **open_set_row(getattr(r, "open_set", {}) or {})}
 
 
@@ -445,6 +446,7 @@ def _why_lines(row: Mapping[str, Any]) -> list[str]:
                      + (f"; contenders {' / '.join(row['contenders'])}" if row.get("contenders") else ""))
     if row.get("verdict_reason"):
         lines.append(f"why not named: {row['verdict_reason']}")
+    lines.extend(f"the gap lies along the stroke in {cell}" for cell in row.get("where_stroke") or [])
     lines.extend(f"left ({group}): {cell}" for group, cell in (row.get("where_left") or {}).items())
     return lines
 

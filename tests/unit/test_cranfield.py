@@ -781,3 +781,5 @@ def test_a_stroke_localised_fault_injected_into_the_healthy_records_is_not_named
     assert len(spot.where["stroke"]) == 1 and spot.where["stroke"][0].startswith("stroke:2/4 (position 0.0")
     low, high = (float(v) for v in spot.where["stroke"][0].split("position ")[1].split(" m")[0].split("-"))
     assert low < 0.08 < high
+    row = result.to_json()["diagnoses"][1]
+    assert row["where_stroke"] == spot.where["stroke"] and "along the stroke in stroke:2/4" in result.summary()
