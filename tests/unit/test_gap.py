@@ -454,7 +454,8 @@ def test_gap_json_contract_and_round_trip(effect_result, tmp_path):
     for row in data["ranking"]:
         assert {"effect", "score", "gap_before", "gap_after", "shrink"} <= set(row)
         assert row["shrink"] == pytest.approx(1 - row["gap_after"] / row["gap_before"])
-    assert set(data["where"]) == {"channels", "regimes"}
+    # channels and regimes as always; "stroke" was added beside them (where along the stroke the gap lies)
+    assert set(data["where"]) == {"channels", "regimes", "stroke"} and isinstance(data["where"]["stroke"], list)
     assert {"shrink", "shrink_se", "shrink_record"} <= set(data["gap"])
     # the default (method version 2) runs at the model's own step, not the converged-step option's
     assert data["nominal"]["integration_step_s"] == get_model("htls").integration_step
