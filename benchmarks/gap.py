@@ -327,6 +327,14 @@ def _count_values(value) -> int:
     return 1
 
 
+def outcome_hash(protocol: dict, root: Path = ROOT) -> str:
+    """The hash that names the outcome folders of the current sources: the frozen one when the
+    sources hash to a value the protocol accepts (an attested refactor continues the frozen
+    outcomes), else their own."""
+    current = hash_sources(root)[0]
+    return protocol["sources"]["sha256"] if current in accepted_hashes(protocol) else current
+
+
 def protocol_settings(protocol: dict) -> DiagnosisSettings:
     """The diagnosis settings a protocol froze (its ``settings``). A protocol frozen before the
     model-form allowance existed (method version 1: no ``model_form_allowance`` in its settings)
@@ -350,9 +358,7 @@ def run_block(protocol: dict, block: str, out_dir: Path, jobs: int = 1, chunk: s
     settings = protocol["selfcheck"]
     diagnosis_settings = protocol_settings(protocol)
     seeds = protocol["blocks"][block]["seeds"]
-    current = hash_sources(root)[0]
-    if current in accepted_hashes(protocol):
-        current = protocol["sources"]["sha256"]      # an attested refactor continues the frozen outcomes
+    current = outcome_hash(protocol, root)
     outcomes, wall, parts, used = [], 0.0, {}, {}
     for seed in seeds:
         part = self_check(seed=int(seed), concepts=settings["concepts"], sensors=settings["sensors"],

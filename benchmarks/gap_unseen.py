@@ -28,7 +28,7 @@ import yaml
 
 from ema_uq.gap.selfcheck import SelfCheckResult, self_check, unseen_cases
 from ema_uq.gap.variant_catalogue import UNSEEN_VARIANTS
-from gap import ROOT, accepted_hashes, check_sources, hash_sources, load_protocol, protocol_settings, side_by_side
+from gap import ROOT, check_sources, load_protocol, outcome_hash, protocol_settings, side_by_side
 
 
 def load_unseen_protocol(path: Path) -> dict:
@@ -56,9 +56,7 @@ def main() -> None:
     problem = check_sources(method)
     if problem:
         raise SystemExit(problem)
-    current = hash_sources(ROOT)[0]
-    if current in accepted_hashes(method):
-        current = method["sources"]["sha256"]
+    current = outcome_hash(method)
     results = ROOT / protocol["results"]
     seeds = [int(seed) for seed in protocol["seeds"]]
     parts = {}
