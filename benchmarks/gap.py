@@ -41,7 +41,7 @@ version 1, no ``model_form_allowance`` there) runs without it.
 
 Usage: python benchmarks/gap.py [--concept htls|lths|both] [--sensors full realistic] [--jobs N]
                                 [--quick] [--none-per-set N] [--kinds ...] [--none-from K] [--seed N]
-                                [--peer] [--out JSON] [--method-version 1|2|3]
+                                [--peer] [--out JSON] [--method-version 1|2|3|4]
        python benchmarks/gap.py --protocol benchmarks/gap_protocol.yaml --block development|evaluation
                                 [--jobs N] [--chunk I/N] [--results DIR]
        python benchmarks/gap.py --protocol benchmarks/gap_protocol.yaml --freeze [--new-evaluation]
@@ -166,7 +166,8 @@ def _frozen_method() -> dict:
                                "z_significant": getattr(strategy.metric, "z_significant", None),
                                "structure": plain(strategy.structure),
                                "model_form": _allowance_record(strategy, concept)}
-    return {"catalogue": {c: catalogue_families(c) for c in PROTOCOL_SELFCHECK["concepts"]},
+    spanning = DiagnosisSettings().spanning_forms
+    return {"catalogue": {c: catalogue_families(c, spanning) for c in PROTOCOL_SELFCHECK["concepts"]},
             "thresholds": plain(Thresholds()), "settings": plain(DiagnosisSettings()),
             "constants": {"Z_HELD_OUT": attribute.Z_HELD_OUT, "PROFILE_POINTS": attribute.PROFILE_POINTS,
                           "SHRINK_BLOCKS": attribute.SHRINK_BLOCKS, "SHRINK_REPLICATES": attribute.SHRINK_REPLICATES,
@@ -345,7 +346,24 @@ def protocol_settings(protocol: dict) -> DiagnosisSettings:
     frozen = {k: v for k, v in dict(protocol.get("settings") or {}).items() if k in known}
     frozen.setdefault("model_form_allowance", False)
     frozen.setdefault("converged_step", False)
+    frozen.setdefault("spanning_forms", False)
     return DiagnosisSettings(**frozen)
+
+
+#: what each method version changed (docs/gap-diagnosis.md); 3 was tried and not adopted
+METHOD_VERSIONS = {1: "the nominal model's kinematics and command taken as exact",
+                   2: "the model-form allowance (kinematic tolerance, command lag) fitted in every model",
+                   3: "2 at the model contract's converged step where no effect brings faster dynamics "
+                      "(tried, not adopted)",
+                   4: "2 with the spanning forms: friction per direction, a sensor delay with its filter"}
+
+
+def method_settings(version: int) -> DiagnosisSettings:
+    """The diagnosis settings of method ``version`` (:data:`METHOD_VERSIONS`)."""
+    if version not in METHOD_VERSIONS:
+        raise SystemExit(f"no method version {version}; choose from {', '.join(map(str, METHOD_VERSIONS))}")
+    return DiagnosisSettings(model_form_allowance=version >= 2, converged_step=version == 3,
+                             spanning_forms=version >= 4)
 
 
 def run_block(protocol: dict, block: str, out_dir: Path, jobs: int = 1, chunk: str | None = None,
@@ -470,18 +488,15 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=DEFAULT_SEED)
     parser.add_argument("--peer", action="store_true", help="also run the former circular self-check")
     parser.add_argument("--out", metavar="JSON", help="write scores and per-case table as JSON")
-    parser.add_argument("--method-version", type=int, choices=(1, 2, 3), default=2,
-                        help="2 (default): fit the model-form allowance (kinematic tolerance, command lag) in every "
-                             "model; 1: the method without it; 3: 2 at the model contract's converged step where no "
-                             "effect brings faster dynamics (tried, not adopted)")
+    parser.add_argument("--method-version", type=int, choices=tuple(METHOD_VERSIONS), default=2,
+                        help="; ".join(f"{v}: {what}" for v, what in METHOD_VERSIONS.items()) + " (default 2)")
     args = parser.parse_args()
 
     concepts = ["htls", "lths"] if args.concept == "both" else [args.concept]
     load = os.getloadavg()[0]
     result = self_check(seed=args.seed, quick=args.quick, concepts=concepts, sensors=args.sensors,
                         none_per_set=args.none_per_set, kinds=args.kinds, none_first=args.none_from, jobs=args.jobs,
-                        settings=DiagnosisSettings(model_form_allowance=args.method_version >= 2,
-                                                   converged_step=args.method_version >= 3),
+                        settings=method_settings(args.method_version),
                         progress=lambda line: print(line, flush=True))
     print()
     print(result.summary())

@@ -17,6 +17,7 @@ nothing twice); the scores go to ``<results>.json`` and are printed beside those
 evaluation block.
 
 Usage: python benchmarks/gap_unseen.py [--protocol benchmarks/gap_unseen.yaml] [--jobs N]
+       python benchmarks/gap_unseen.py --development VERSION --results DIR [--jobs N]   (a method not frozen)
 """
 from __future__ import annotations
 
@@ -28,7 +29,8 @@ import yaml
 
 from ema_uq.gap.selfcheck import SelfCheckResult, self_check, unseen_cases
 from ema_uq.gap.variant_catalogue import UNSEEN_VARIANTS
-from gap import ROOT, check_sources, load_protocol, outcome_hash, protocol_settings, side_by_side
+from gap import (METHOD_VERSIONS, ROOT, check_sources, load_protocol, method_settings, outcome_hash, protocol_settings,
+                 side_by_side)
 
 
 def load_unseen_protocol(path: Path) -> dict:
@@ -50,9 +52,18 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--protocol", default=str(ROOT / "benchmarks" / "gap_unseen.yaml"), metavar="YAML")
     parser.add_argument("--jobs", type=int, default=1, help="worker processes (results do not depend on it)")
+    parser.add_argument("--development", type=int, metavar="VERSION", choices=tuple(METHOD_VERSIONS),
+                        help="run the protocol's cases as development cases of method VERSION (not frozen: no "
+                             "source check), outcomes under --results, scored beside the protocol's own run")
+    parser.add_argument("--results", metavar="DIR", help="outcome folder of a --development run")
     args = parser.parse_args()
     protocol = load_unseen_protocol(Path(args.protocol))
     method = load_protocol(ROOT / protocol["method_protocol"])
+    if args.development is not None:
+        if not args.results:
+            raise SystemExit("a --development run needs --results DIR: its outcomes must not mix with the protocol's")
+        development(protocol, args.development, Path(args.results), args.jobs)
+        return
     problem = check_sources(method)
     if problem:
         raise SystemExit(problem)
@@ -86,6 +97,33 @@ def main() -> None:
         columns.update({f"unseen {seed}": part for seed, part in parts.items()})
     columns["unseen " + "+".join(map(str, seeds))] = result
     print("\n[[Frozen method: self-check variants vs variants written after the freeze]]")
+    print(side_by_side(columns))
+
+
+def development(protocol: dict, version: int, results: Path, jobs: int) -> None:
+    """The protocol's cases diagnosed by method ``version`` as it stands (development data: the
+    cases are those the protocol's run has already shown), scored beside that run."""
+    seeds = [int(seed) for seed in protocol["seeds"]]
+    settings = method_settings(version)
+    outcomes, wall = [], 0.0
+    for seed in seeds:
+        cases = unseen_cases(seed, protocol["concepts"], protocol["sensors"])
+        part = self_check(cases=cases, seed=seed, settings=settings, jobs=jobs, cache=results / f"seed{seed}",
+                          progress=lambda line, s=seed: print(f"seed {s} {line}", flush=True))
+        outcomes += part.outcomes
+        wall += part.wall_time_s
+    result = SelfCheckResult(outcomes, seeds[0], False, wall,
+                             {**part.settings, "seeds": seeds, "development_of_method": version}, part.provenance)
+    with open(results.with_suffix(".json"), "w", encoding="utf-8") as fh:
+        json.dump(result.to_json(), fh, indent=1)
+    columns = {}
+    frozen = (ROOT / protocol["results"]).with_suffix(".json")
+    if frozen.is_file():
+        with open(frozen, encoding="utf-8") as fh:
+            columns["the protocol's run"] = SelfCheckResult.from_json(json.load(fh))
+    columns[f"method {version}, development"] = result
+    print(result.summary())
+    print(f"\n[[Unseen variants: the protocol's run vs method version {version} (development)]]")
     print(side_by_side(columns))
 
 

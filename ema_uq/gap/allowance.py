@@ -55,6 +55,7 @@ import numpy as np
 
 from ..errors import EmaUqError
 from ..models.base import Model
+from ..models.effects import first_order_lag
 from ..params import Parameter, ParameterSet
 from ..simulate import simulate_batch
 from ..simulate.dispatch import SimulationError, kernel_family
@@ -102,11 +103,10 @@ def position_loop_time_constant(model: Model) -> float | None:
 
 
 def command_lag(values: np.ndarray, tau: float, dt: float) -> np.ndarray:
-    """``values`` (n,) through a first-order lag of time constant ``tau`` [s], exact for an
-    input linear between samples, started at rest on the first value:
-    y_k = a y_(k-1) + b0 u_k + b1 u_(k-1), a = exp(-dt/tau), b0 = 1 - (tau/dt)(1 - a),
-    b1 = (tau/dt)(1 - a) - a (unit static gain; tau -> 0 tends to a delay of tau). A negative
-    tau (finite differences at the bound) is a lead of |tau| by linear interpolation."""
+    """``values`` (n,) through the first-order lag of time constant ``tau`` [s] of
+    :func:`ema_uq.models.effects.first_order_lag` (exact for an input linear between samples,
+    unit static gain, smooth down to tau = 0). A negative tau (finite differences at the bound)
+    is a lead of |tau| by linear interpolation."""
     values = np.asarray(values, dtype=float)
     if tau == 0.0 or values.size < 2:
         return values.copy()
@@ -115,12 +115,7 @@ def command_lag(values: np.ndarray, tau: float, dt: float) -> np.ndarray:
         # limit, a lead of |tau| by linear interpolation, capped at one sample
         f = min(-tau / dt, 1.0)
         return np.concatenate([values[:-1] + f * np.diff(values), values[-1:]])
-    from scipy.signal import lfilter
-
-    a = math.exp(-dt / tau)
-    c = tau / dt * (1.0 - a)
-    b0, b1 = 1.0 - c, c - a
-    return lfilter([b0, b1], [1.0, -a], values - values[0]) + values[0]
+    return first_order_lag(values, tau, dt)
 
 
 @dataclass(frozen=True)

@@ -38,12 +38,18 @@ DIVERGED_RELATIVE = 1e6
 # ----------------------------------------------------------------------------------------
 # the candidates and their refits
 # ----------------------------------------------------------------------------------------
-def _catalogue(model) -> dict[str, Any]:
+#: forms that give a family the freedom its mechanism has (a friction law per direction of motion or
+#: of the power flow, a sensor delay with its filter), each nesting the family's first form; offered
+#: from method version 4 on (``DiagnosisSettings.spanning_forms``)
+SPANNING_FORMS = ("stribeck_directional", "load_friction_directional", "sensor_delay_dispersed")
+
+
+def _catalogue(model, spanning_forms: bool = False) -> dict[str, Any]:
     """The concept's candidate effects, name -> Effect (``Model.effect_catalogue``), less the
     compounds that carry another family's mechanism (``Effect.combines``): a candidate is one
-    mechanism."""
+    mechanism. The :data:`SPANNING_FORMS` only with ``spanning_forms``."""
     catalogue = {name: effect for name, effect in (getattr(model, "effect_catalogue", None) or {}).items()
-                 if not getattr(effect, "combines", ())}
+                 if not getattr(effect, "combines", ()) and (spanning_forms or name not in SPANNING_FORMS)}
     if not catalogue or not hasattr(model, "with_effects"):
         raise GapError(f"concept {model.name} has no catalogue of unmodelled effects; the gap diagnosis needs one")
     return catalogue

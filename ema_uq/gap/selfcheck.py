@@ -93,6 +93,7 @@ from __future__ import annotations
 import json
 import time
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
 from multiprocessing import get_context
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
@@ -102,6 +103,7 @@ import numpy as np
 from ..models import get_model
 from ..threads import single_threaded_worker
 from .attribute import diagnose
+from .candidates import SPANNING_FORMS
 from .strategy import DiagnosisSettings
 from ..errors import EmaUqError
 from .selfcheck_scores import Case, CaseOutcome, SelfCheckResult, _num
@@ -146,20 +148,31 @@ def case_seed(seed: int, concept: str, sensors: str, slot: int) -> int:
     return int(state.generate_state(1)[0])
 
 
-def catalogue_families(concept: str) -> dict[str, list[str]]:
+def catalogue_families(concept: str, spanning_forms: bool = False) -> dict[str, list[str]]:
     """{family: [effect forms]} of the concept's candidate effects (``Effect.family``, else the
-    effect's name; compounds of several mechanisms, ``Effect.combines``, are no candidates)."""
+    effect's name; compounds of several mechanisms, ``Effect.combines``, are no candidates; the
+    :data:`~ema_uq.gap.candidates.SPANNING_FORMS` only with ``spanning_forms``)."""
     out: dict[str, list[str]] = {}
     for name, effect in get_model(concept).effect_catalogue.items():
-        if getattr(effect, "combines", ()):
+        if getattr(effect, "combines", ()) or (name in SPANNING_FORMS and not spanning_forms):
             continue
         out.setdefault(getattr(effect, "family", None) or name, []).append(name)
     return out
 
 
-def catalogue_without(concept: str, family: str) -> tuple[str, ...]:
+def catalogue_without(concept: str, family: str, spanning_forms: bool = False) -> tuple[str, ...]:
     """Every form of the concept's catalogue but those of ``family``."""
-    return tuple(name for fam, forms in catalogue_families(concept).items() if fam != family for name in forms)
+    return tuple(name for fam, forms in catalogue_families(concept, spanning_forms).items() if fam != family
+                 for name in forms)
+
+
+def under_catalogue(case: Case, settings: DiagnosisSettings | None) -> Case:
+    """The case as the catalogue of ``settings`` poses it: a left-out case is built with every form
+    of the other families that method version 2 offers, and gets the spanning forms of those
+    families too when ``settings.spanning_forms`` is on."""
+    if case.kind != "left_out" or settings is None or not settings.spanning_forms:
+        return case
+    return replace(case, candidates=catalogue_without(case.concept, case.family, spanning_forms=True))
 
 
 def _case(seed: int, concept: str, sensors: str, variant: str | None, none_index: int = 0,
@@ -371,6 +384,7 @@ def self_check(*, seed: int = DEFAULT_SEED, quick: bool = False, concepts: Seque
     every = list(cases) if cases is not None else build_cases(concepts, seed=seed, quick=quick, sensors=sensors,
                                                               none_per_set=none_per_set, kinds=kinds,
                                                               none_first=none_first)
+    every = [under_catalogue(case, settings) for case in every]
     indices = list(range(len(every))) if chunk is None else list(range(chunk[0], len(every), chunk[1]))
     todo = [every[i] for i in indices]
     cache = None if cache is None else Path(cache)

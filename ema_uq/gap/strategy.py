@@ -47,7 +47,10 @@ class DiagnosisSettings:
     adopted, docs/gap-diagnosis.md): every fit and prediction runs RK4 at the model's
     ``converged_step`` (the model contract's step, converged well under the noise: HT/LS 1 ms,
     LT/HS 0.5 ms) instead of its finer ``integration_step``, but for models with an effect of
-    faster dynamics (``Model.rk4_step``).
+    faster dynamics (``Model.rk4_step``);
+    ``spanning_forms``: offer the catalogue's forms that give a family the freedom its mechanism
+    has (:data:`ema_uq.gap.candidates.SPANNING_FORMS`: friction per direction, a sensor delay
+    with its filter; method version 4) beside the families' other forms.
     """
 
     holdout_fraction: float = 0.3
@@ -60,12 +63,15 @@ class DiagnosisSettings:
     max_effects: int = 1
     model_form_allowance: bool = True
     converged_step: bool = False
+    spanning_forms: bool = False
 
     def __post_init__(self) -> None:
         if not isinstance(self.model_form_allowance, (bool, np.bool_)):
             raise AllowanceError(f"model_form_allowance must be true or false, got {self.model_form_allowance!r}")
         if not isinstance(self.converged_step, (bool, np.bool_)):
             raise ValueError(f"converged_step must be true or false, got {self.converged_step!r}")
+        if not isinstance(self.spanning_forms, (bool, np.bool_)):
+            raise ValueError(f"spanning_forms must be true or false, got {self.spanning_forms!r}")
 
 
 class GapMetric(Protocol):

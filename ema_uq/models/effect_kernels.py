@@ -57,10 +57,14 @@ RIPPLE = FLAG["torque_ripple"]
 HARMONICS = FLAG["torque_ripple_harmonics"]
 COUPLING = FLAG["backlash_compliant"]
 NUT_PLAY = FLAG["backlash_output"]
+STRIBECK_DIRECTIONAL = FLAG["stribeck_directional"]
+LOAD_FRICTION_DIRECTIONAL = FLAG["load_friction_directional"]
 #: effects of one kind: a U-joint factor, a compliant coupling, a ripple torque
 ANY_UJOINT = UJOINT | UJOINT_STATIONS
 ANY_COUPLING = COMPLIANCE | COUPLING
 ANY_RIPPLE = RIPPLE | HARMONICS
+ANY_STRIBECK = STRIBECK | STRIBECK_DIRECTIONAL
+ANY_LOAD_FRICTION = LOAD_FRICTION | LOAD_FRICTION_DIRECTIONAL
 #: effects with extra states (frozen by the adaptive integrator at their magnitude's zero)
 STATEFUL = sum(FLAG[n] for n in FLAG if any(CATALOGUE[n].extra_states.values()))
 
@@ -104,6 +108,8 @@ FX_NUT_PLAY_RELAXATION = LAYOUT["backlash_output_relaxation"]  # [s]
 FX_NUT_PLAY_SOFTNESS = LAYOUT["backlash_output_softness"]      # [1]
 FX_HARMONICS = LAYOUT["torque_ripple_harmonics"]
 FX_HARMONICS_PERIODS = LAYOUT["torque_ripple_harmonics_periods"]  # fundamental periods per motor revolution
+FX_STRIBECK_DIRECTIONAL = LAYOUT["stribeck_directional"]
+FX_LOAD_FRICTION_DIRECTIONAL = LAYOUT["load_friction_directional"]
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -205,6 +211,18 @@ def _stribeck(speed, ratio, v_s):
     return 1.0 + ratio * math.exp(-zz)
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def _stribeck_factor(flags, th, c, t, speed):
+    """The Stribeck factor of a shaft at ``speed`` (referred to the screw): stribeck's one
+    breakaway excess ρ, or stribeck_directional's ρ (1 ± a) by the direction of the speed."""
+    if flags & STRIBECK:
+        p_st = int(c[t + FX_STRIBECK])
+        return _stribeck(speed, th[p_st], th[p_st + 1])
+    p_sd = int(c[t + FX_STRIBECK_DIRECTIONAL])
+    ratio = th[p_sd] * (1.0 + th[p_sd + 1]) if speed > 0.0 else th[p_sd] * (1.0 - th[p_sd + 1])
+    return _stribeck(speed, ratio, th[p_sd + 2])
+
+
 # --- hooks: called by the concepts' evaluate at fixed points of the right-hand side ---------
 @hook
 def coupling(flags, x, th, c, t, omega, theta, band_ratio_a, band_ratio_b):
@@ -282,7 +300,7 @@ def transmit(flags, e, torque):
 @njit(cache=True, inline="always", error_model="numpy")
 def coulomb(flags, c_loss, factor):
     """A Coulomb loss with the Stribeck factor of its shaft (:func:`station_terms`)."""
-    if flags is not None and flags & STRIBECK:
+    if flags is not None and flags & ANY_STRIBECK:
         return c_loss * factor
     return c_loss
 
@@ -290,9 +308,8 @@ def coulomb(flags, c_loss, factor):
 @hook
 def stribeck_coulomb(flags, th, c, t, c_loss, speed):
     """A Coulomb loss with the Stribeck factor at ``speed`` (referred to the screw)."""
-    if flags is not None and flags & STRIBECK:
-        p_st = int(c[t + FX_STRIBECK])
-        return c_loss * _stribeck(speed, th[p_st], th[p_st + 1])
+    if flags is not None and flags & ANY_STRIBECK:
+        return c_loss * _stribeck_factor(flags, th, c, t, speed)
     return c_loss
 
 
@@ -322,10 +339,9 @@ def station_terms(flags, th, c, t, omega_tp1, omega_tp2, angle1, angle2, eps):
         cos2 = cos1 if angle2 == angle1 and p_uj2 == p_uj1 else math.cos(angle2 + th[p_uj2 + 1])
     f1 = 1.0
     f2 = 1.0
-    if flags is not None and flags & STRIBECK:
-        p_st = int(c[t + FX_STRIBECK])
-        f1 = _stribeck(omega_tp1, th[p_st], th[p_st + 1])
-        f2 = f1 if omega_tp2 == omega_tp1 else _stribeck(omega_tp2, th[p_st], th[p_st + 1])
+    if flags is not None and flags & ANY_STRIBECK:
+        f1 = _stribeck_factor(flags, th, c, t, omega_tp1)
+        f2 = f1 if omega_tp2 == omega_tp1 else _stribeck_factor(flags, th, c, t, omega_tp2)
     return sign1, sign2, cos1, cos2, f1, f2
 
 
@@ -347,9 +363,14 @@ def station(flags, th, c, t, k, omega_tp, sign_tp, cos_angle, f_tp, f_er, b_ts, 
         p_uj1, p_uj2 = _ujoint_positions(flags, c, t)
         g_u = _ujoint_factor(cos_angle, th[p_uj1 if k == 1 else p_uj2], inv_cos_beta)
         omega_u = g_u * omega_tp
-    if flags is not None and flags & LOAD_FRICTION:
-        c_ts = c_ts + th[int(c[t + FX_LOAD_FRICTION])] * r * abs(f_er)
-    if flags is not None and flags & STRIBECK:
+    if flags is not None and flags & ANY_LOAD_FRICTION:
+        if flags & LOAD_FRICTION:
+            c_ts = c_ts + th[int(c[t + FX_LOAD_FRICTION])] * r * abs(f_er)
+        else:  # μ (1 + a) against a load that opposes the motion (M_ER along Ω), μ (1 - a) with one that aids it
+            p_ld = int(c[t + FX_LOAD_FRICTION_DIRECTIONAL])
+            opposing = sign_tp if -r_scg * f_er > 0.0 else (-sign_tp if f_er != 0.0 else 0.0)
+            c_ts = c_ts + th[p_ld] * (1.0 + th[p_ld + 1] * opposing) * r * abs(f_er)
+    if flags is not None and flags & ANY_STRIBECK:
         c_ts = c_ts * f_tp
         c_u = c_u * f_tp
     m_er = -r_scg * f_er

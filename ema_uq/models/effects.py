@@ -84,6 +84,25 @@ Further forms of these families (``Effect.family``; the gap diagnosis names the 
     + h2 sin(2 n_p θ + φ2) + h3 sin(3 n_p θ + φ3)); the harmonics as ratios h2, h3 to the
     fundamental, so that A = 0 switches the whole ripple off.
 
+Forms with the freedom the mechanism has (method version 3 of the gap diagnosis; each nests its
+family's first form, which it equals at a = 0 or d = 0):
+
+``stribeck_directional`` (family ``stribeck``)
+    The Stribeck rise with its breakaway excess per direction of motion, ρ (1 + a) moving out
+    (screw speed > 0) and ρ (1 - a) moving in. A drive whose load presses one way works its
+    balls, seals and lubricant film differently in the two directions, so a rig's static
+    friction is not symmetric in general; ``stribeck`` is the case a = 0.
+``load_friction_directional`` (family ``load_dependent_friction``)
+    The ball screw's load-dependent friction μ (1 + a) r |F| while the load opposes the motion
+    (the screw drives it: M_ER along Ω) and μ (1 - a) r |F| while the load aids it (the screw is
+    back-driven). A screw's efficiencies differ with the direction of the power flow
+    (η = tan γ / tan(γ + φ) driving, η' = tan(γ - φ) / tan γ back-driven, φ the friction
+    angle), so the load's share of the friction does too; ``load_dependent_friction`` is a = 0.
+``sensor_delay_dispersed`` (family ``sensor_delay``)
+    A delay of τ in all made of a pure delay (1 - d) τ and a first-order lag of time constant
+    d τ, equal at low frequency: a real sensor chain filters (anti-aliasing, averaging,
+    sample-and-hold), so its delay falls with frequency; ``sensor_delay`` is d = 0.
+
 Nominal magnitudes (one value serves both concepts) are typical rig values chosen so that,
 with 2 % noise, each effect stays visible on deploy-retract at nominal and at half
 magnitude: the noise-normalised excess chi-square N Σ (NRMSE_ch / 0.02)² over the rig
@@ -237,26 +256,60 @@ class Effect:
                           f"{', '.join(self.short_names)} (or {', '.join(self.parameter_names)})")
 
 
+def _delayed(values: np.ndarray, tau: float, dt: float) -> np.ndarray:
+    """``values`` (n_samples, n_outputs) delayed by ``tau`` >= 0 [s]: linear interpolation
+    between samples, samples with t < tau holding the first value."""
+    n = values.shape[0]
+    k = np.arange(n)
+    lag = tau / dt
+    whole = int(math.floor(lag))
+    frac = lag - whole
+    src = k - lag  # fractional sample index of t_k - tau
+    i0 = np.clip(k - whole, 0, n - 1)      # sample at or after t_k - tau
+    i1 = np.clip(k - whole - 1, 0, n - 1)  # sample before it
+    delayed = (1.0 - frac) * values[i0] + frac * values[i1]
+    delayed[src <= 0.0] = values[0]
+    return delayed
+
+
+def first_order_lag(values: np.ndarray, tau: float, dt: float) -> np.ndarray:
+    """``values`` (n, ...) along axis 0 through a first-order lag of time constant ``tau`` > 0
+    [s], exact for an input linear between samples, started at rest on the first value:
+    y_k = a y_(k-1) + b0 u_k + b1 u_(k-1), a = exp(-dt/tau), b0 = 1 - (tau/dt)(1 - a),
+    b1 = (tau/dt)(1 - a) - a (unit static gain; tau -> 0 tends to a delay of tau)."""
+    from scipy.signal import lfilter  # scipy.signal costs start-up time; only lags need it
+
+    a = math.exp(-dt / tau)
+    c = tau / dt * (1.0 - a)
+    return lfilter([1.0 - c, c - a], [1.0, -a], values - values[0], axis=0) + values[0]
+
+
 def delay_outputs(model: "Model", thetas: np.ndarray, time: np.ndarray, out: np.ndarray) -> np.ndarray:
     """``sensor_delay``: every channel of set s lags by tau_s (linear interpolation between
     samples; samples with t < tau hold the first value). thetas (n_sets, n_params), out
     (n_sets, n_samples, n_outputs), modified in place and returned. tau = 0 leaves a set untouched."""
     taus = thetas[:, model.parameters.index("sensor_delay_tau")]
     dt = float(time[1] - time[0])
-    n = out.shape[1]
-    k = np.arange(n)
     for s, tau in enumerate(taus):
-        if tau == 0.0:
-            continue
-        lag = tau / dt
-        whole = int(math.floor(lag))
-        frac = lag - whole
-        src = k - lag  # fractional sample index of t_k - tau
-        i0 = np.clip(k - whole, 0, n - 1)      # sample at or after t_k - tau
-        i1 = np.clip(k - whole - 1, 0, n - 1)  # sample before it
-        delayed = (1.0 - frac) * out[s, i0] + frac * out[s, i1]
-        delayed[src <= 0.0] = out[s, 0]
-        out[s] = delayed
+        if tau != 0.0:
+            out[s] = _delayed(out[s], tau, dt)
+    return out
+
+
+def delay_dispersed_outputs(model: "Model", thetas: np.ndarray, time: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """``sensor_delay_dispersed``: every channel of set s lags by tau_s in all, (1 - d_s) tau_s
+    as a pure delay (as ``sensor_delay``) followed by a first-order lag of time constant
+    d_s tau_s. In place as :func:`delay_outputs`; d = 0 is ``sensor_delay``, tau = 0 no change."""
+    index = model.parameters.index
+    taus = thetas[:, index("sensor_delay_dispersed_tau")]
+    shares = thetas[:, index("sensor_delay_dispersed_dispersion")]
+    dt = float(time[1] - time[0])
+    for s, (tau, share) in enumerate(zip(taus, shares)):
+        pure, lag = (1.0 - share) * tau, share * tau
+        if pure > 0.0:
+            out[s] = _delayed(out[s], pure, dt)
+        if lag > 0.0:
+            out[s] = first_order_lag(out[s], lag, dt)
     return out
 
 
@@ -415,6 +468,45 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (
              "ujoint_stations_scale2": 0.0, "ujoint_stations_phase2": 0.0},
         signature=("periodic", "high_load"), magnitude="ujoint_stations_scale1",
         family="ujoint_kinematics"),
+    # forms that give a family the freedom its mechanism has on a drive with a one-sided load or a
+    # filtering sensor (method version 3 of the gap diagnosis; each nests the family's first form)
+    Effect(
+        "stribeck_directional",
+        "Coulomb friction rising near zero speed, by a breakaway excess that differs with the direction of "
+        "motion: C(v) = C (1 + ρ (1 ± a) exp(-(v/v_s)²)), + for v > 0",
+        (_p("stribeck_directional_ratio", "1", 0.5, 0.0, 20.0, "mean breakaway excess C_s/C - 1 of both directions"),
+         _p("stribeck_directional_asymmetry", "1", 0.0, -1.0, 1.0,
+            "a: the excess is ρ (1 + a) moving out (v > 0), ρ (1 - a) moving in"),
+         _p("stribeck_directional_speed", "rad/s", 1.0, 1e-3, 100.0,
+            "Stribeck speed v_s, referred to the screw shaft")),
+        start={"stribeck_directional_ratio": 0.05, "stribeck_directional_asymmetry": 0.0,
+               "stribeck_directional_speed": 1.0},
+        off={"stribeck_directional_ratio": 0.0, "stribeck_directional_asymmetry": 0.0,
+             "stribeck_directional_speed": 1.0},
+        signature=("low_speed", "reversal", "direction"), magnitude="stribeck_directional_ratio",
+        family="stribeck"),
+    Effect(
+        "load_friction_directional",
+        "ball-screw Coulomb friction growing with the carried load, more against a load that opposes the "
+        "motion than with one that aids it: C_TS + μ (1 ± a) r |F_ER|",
+        (_p("load_friction_directional_mu", "1", 0.005, 0.0, 0.5, "mean load coefficient μ of the ball-screw friction"),
+         _p("load_friction_directional_asymmetry", "1", 0.0, -1.0, 1.0,
+            "a: μ (1 + a) while the load opposes the motion (driving), μ (1 - a) while it aids it (back-driven)")),
+        start={"load_friction_directional_mu": 2.5e-4, "load_friction_directional_asymmetry": 0.0},
+        off={"load_friction_directional_mu": 0.0, "load_friction_directional_asymmetry": 0.0},
+        signature=("high_load", "direction"), magnitude="load_friction_directional_mu",
+        family="load_dependent_friction"),
+    Effect(
+        "sensor_delay_dispersed",
+        "every measured channel lags the true signal by τ in all: a pure delay (1 - d) τ and a first-order "
+        "lag of time constant d τ (the sensor's filter)",
+        (_p("sensor_delay_dispersed_tau", "s", 0.012, 0.0, 0.5, "delay of the measured channels at low frequency"),
+         _p("sensor_delay_dispersed_dispersion", "1", 0.5, 0.0, 1.0,
+            "d: share of the delay that is a first-order lag rather than a pure delay")),
+        start={"sensor_delay_dispersed_tau": 0.001, "sensor_delay_dispersed_dispersion": 0.5},
+        off={"sensor_delay_dispersed_tau": 0.0, "sensor_delay_dispersed_dispersion": 0.5},
+        signature=("delay", "high_acceleration"), magnitude="sensor_delay_dispersed_tau",
+        postprocess=delay_dispersed_outputs, family="sensor_delay"),
 )}
 
 #: Effects that cannot share one model: both model the same coupling (its twist states, or its joints).
@@ -614,5 +706,5 @@ class _DeriveWithLayout:
 
 
 __all__ = ["CATALOGUE", "EFFECT_ORDER", "EXCLUSIVE", "Effect", "EffectError", "FlaggedSimulator", "LAYOUT", "LAYOUT_SIZE",
-           "SIGNATURES", "augment_ema", "augment_own_kernel", "delay_outputs", "effect_parameters", "off_vector",
-           "parse_effect"]
+           "SIGNATURES", "augment_ema", "augment_own_kernel", "delay_dispersed_outputs", "delay_outputs",
+           "effect_parameters", "first_order_lag", "off_vector", "parse_effect"]

@@ -22,7 +22,8 @@ from numba import njit
 from ema_uq import ParameterError, deploy_retract, get_model, io, simulate_batch, synthesize
 from ema_uq.models import htls, lths
 from ema_uq.models.effect_kernels import effect_flags
-from ema_uq.models.effects import CATALOGUE, Effect, EffectError, SIGNATURES, delay_outputs, parse_effect
+from ema_uq.models.effects import (CATALOGUE, Effect, EffectError, SIGNATURES, delay_outputs, first_order_lag,
+                                   parse_effect)
 from ema_uq.params import Parameter
 
 DEG = math.pi / 180.0
@@ -34,10 +35,27 @@ MAGNITUDE = {"backlash": "backlash_delta", "stribeck": "stribeck_ratio", "shaft_
              "ujoint_kinematics": "ujoint_kinematics_scale", "load_dependent_friction": "load_dependent_friction_mu",
              "sensor_delay": "sensor_delay_tau", "torque_ripple": "torque_ripple_amplitude",
              "backlash_compliant": "backlash_compliant_period", "backlash_output": "backlash_output_delta",
-             "torque_ripple_harmonics": "torque_ripple_harmonics_amplitude", "ujoint_stations": "ujoint_stations_scale1"}
+             "torque_ripple_harmonics": "torque_ripple_harmonics_amplitude",
+             "ujoint_stations": "ujoint_stations_scale1", "stribeck_directional": "stribeck_directional_ratio",
+             "load_friction_directional": "load_friction_directional_mu",
+             "sensor_delay_dispersed": "sensor_delay_dispersed_tau"}
 #: further forms of the spec effects' families (the catalogue after the seven), form -> family
 FAMILY_FORMS = {"backlash_compliant": "backlash", "backlash_output": "backlash",
-                "torque_ripple_harmonics": "torque_ripple", "ujoint_stations": "ujoint_kinematics"}
+                "torque_ripple_harmonics": "torque_ripple", "ujoint_stations": "ujoint_kinematics",
+                "stribeck_directional": "stribeck", "load_friction_directional": "load_dependent_friction",
+                "sensor_delay_dispersed": "sensor_delay"}
+#: the spanning forms, each with its family's first form, the values at which they coincide, and a shape
+#: only the spanning form has
+NESTED = (("stribeck", {"stribeck_ratio": 0.8, "stribeck_speed": 1.5}, "stribeck_directional",
+           {"stribeck_directional_ratio": 0.8, "stribeck_directional_asymmetry": 0.0,
+            "stribeck_directional_speed": 1.5},
+           {"stribeck_directional_asymmetry": 0.6}),
+          ("load_dependent_friction", {"load_dependent_friction_mu": 0.01}, "load_friction_directional",
+           {"load_friction_directional_mu": 0.01, "load_friction_directional_asymmetry": 0.0},
+           {"load_friction_directional_asymmetry": -0.6}),
+          ("sensor_delay", {"sensor_delay_tau": 0.0123}, "sensor_delay_dispersed",
+           {"sensor_delay_dispersed_tau": 0.0123, "sensor_delay_dispersed_dispersion": 0.0},
+           {"sensor_delay_dispersed_dispersion": 0.6}))
 NOISE = 0.02  # fraction of channel RMS, docs/MODEL_SPEC.md, "hypothetical data"
 
 
@@ -359,6 +377,57 @@ def test_stribeck_and_load_dependent_friction_formulas():
         m_uer1 = m_tser1 / math.cos(3 * DEG) + 0.10 * w + 0.30 * factor * sign
         assert out["M_UER1"] == pytest.approx(m_uer1, rel=1e-13)
         assert out["M_TPER1"] == pytest.approx(m_uer1 / 2 + 0.20 * w + 0.60 * factor * sign, rel=1e-13)
+
+
+@pytest.mark.parametrize("concept", ["htls", "lths"])
+@pytest.mark.parametrize("parent, parent_values, form, form_values, shape", NESTED)
+def test_a_spanning_form_is_its_family_s_first_form_at_zero_asymmetry_or_dispersion(
+        concept, parent, parent_values, form, form_values, shape, experiment):
+    first = get_model(concept).with_effects([parent], parent_values)
+    spanning = get_model(concept).with_effects([form], form_values)
+    alike = runs(spanning, spanning.parameters.nominal, experiment)
+    np.testing.assert_array_equal(alike, runs(first, first.parameters.nominal, experiment))
+    shaped = runs(spanning, spanning.parameters.vector({**form_values, **shape}), experiment)
+    assert np.max(np.abs(shaped - alike)) > 1e-3 * np.max(np.abs(alike))
+
+
+def test_directional_stribeck_and_load_friction_formulas():
+    """Breakaway excess ρ (1 + a) moving out, ρ (1 - a) moving in; load coefficient μ (1 + a) while
+    the load opposes the motion (here: moving out against the test state's load), μ (1 - a) while
+    it aids it."""
+    rho, a_s, v_s, mu, a_l = 0.8, 0.5, 2.0, 0.004, -0.4
+    aug, x, u = _htls_state_and_constants(["stribeck_directional", "load_friction_directional"], {
+        "stribeck_directional_ratio": rho, "stribeck_directional_asymmetry": a_s, "stribeck_directional_speed": v_s,
+        "load_friction_directional_mu": mu, "load_friction_directional_asymmetry": a_l})
+    m_er1 = 0.016 * 12000.0 * math.sin(4 * DEG) * math.cos(4 * DEG)   # > 0: the load pushes the carriage in
+    for speed in (0.3, 1.5, 24.0, -0.3, -1.5, -24.0):  # motor speed; the screw turns at half of it
+        x[0] = speed
+        dx, y = np.empty(aug.n_states), np.empty(aug.n_outputs)
+        evaluate_effects(aug, x, u, aug.parameters.nominal, aug.kernel_constants(), dx, y)
+        out = dict(zip(aug.outputs, y))
+        w = speed / 2.0
+        sign = math.tanh(w / 0.05)
+        factor = 1 + rho * (1 + a_s if w > 0 else 1 - a_s) * math.exp(-(w / v_s) ** 2)
+        opposing = 1.0 if w > 0 else -1.0
+        c_ts = 1.20 + mu * (1 + a_l * abs(sign) * opposing) * 0.016 * 12000.0
+        m_tser1 = 0.40 * w + c_ts * factor * sign + m_er1
+        assert out["M_TSER1"] == pytest.approx(m_tser1, rel=1e-13)
+        assert out["M_UER1"] == pytest.approx(m_tser1 / math.cos(3 * DEG) + 0.10 * w + 0.30 * factor * sign, rel=1e-13)
+
+
+def test_dispersed_delay_is_a_pure_delay_then_a_first_order_lag(experiment, nominal_runs):
+    tau, share = 0.02, 0.6
+    aug = get_model("htls").with_effects(["sensor_delay_dispersed"], {
+        "sensor_delay_dispersed_tau": tau, "sensor_delay_dispersed_dispersion": share})
+    out = runs(aug, aug.parameters.nominal, experiment)[0]
+    t, nom = experiment.time, nominal_runs["htls"]
+    delayed = np.stack([np.interp(t - (1 - share) * tau, t, nom[:, j]) for j in range(nom.shape[1])], axis=1)
+    expected = first_order_lag(delayed, share * tau, experiment.dt)
+    scale = np.abs(nom).max(axis=0)
+    assert np.all(np.abs(out - expected).max(axis=0) <= 1e-12 * scale)
+    # the lag is exact for a ramp: past its transient a ramp comes out late by the lag's time constant
+    ramp = first_order_lag(np.column_stack([t, 2 * t]), 0.05, experiment.dt)
+    np.testing.assert_allclose(ramp[t > 1.0], np.column_stack([t - 0.05, 2 * (t - 0.05)])[t > 1.0], atol=1e-9)
 
 
 def test_load_dependent_friction_raises_the_steady_current_by_the_extra_torque(experiment, nominal_runs):

@@ -239,3 +239,29 @@ def _refuse_compound():
 
     data = synthesize("htls", deploy_retract().slice(0, 200), noise=0.02, seed=1)
     diagnose([data], candidates=["backlash_compliant"])
+
+
+def test_the_spanning_forms_are_offered_from_method_version_4_only():
+    from ema_uq import synthesize
+    from ema_uq.experiments import deploy_retract
+    from ema_uq.gap import DiagnosisSettings, GapError, diagnose
+    from ema_uq.gap.attribute import _catalogue
+    from ema_uq.gap.candidates import SPANNING_FORMS
+    from ema_uq.gap.selfcheck import build_cases, catalogue_families, under_catalogue
+
+    model = get_model("lths")
+    assert not set(SPANNING_FORMS) & set(_catalogue(model))
+    assert set(SPANNING_FORMS) <= set(_catalogue(model, spanning_forms=True))
+    families = catalogue_families("lths", spanning_forms=True)
+    assert families["stribeck"] == ["stribeck", "stribeck_directional"]
+    assert families["sensor_delay"] == ["sensor_delay", "sensor_delay_dispersed"]
+    assert catalogue_families("lths")["stribeck"] == ["stribeck"]
+    # a left-out case keeps its family out and gets the other families' spanning forms under version 4
+    case = next(c for c in build_cases(["lths"], seed=11, sensors=["full"], kinds=("left_out",))
+                if c.family == "stribeck")
+    assert under_catalogue(case, DiagnosisSettings()) is case
+    wider = under_catalogue(case, DiagnosisSettings(spanning_forms=True))
+    assert set(wider.candidates) - set(case.candidates) == {"load_friction_directional", "sensor_delay_dispersed"}
+    data = synthesize("lths", deploy_retract().slice(0, 200), noise=0.02, seed=1)
+    with pytest.raises(GapError, match="method version 4 on; set DiagnosisSettings"):
+        diagnose([data], candidates=["stribeck_directional"])
