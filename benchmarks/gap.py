@@ -150,8 +150,10 @@ def _allowance_record(strategy, concept: str) -> dict | None:
     return None if allowance is None else allowance.to_json()
 
 
-def _frozen_method() -> dict:
-    """Catalogue, thresholds and strategy knobs as the code sets them."""
+def _frozen_method(settings: DiagnosisSettings | None = None) -> dict:
+    """Catalogue, thresholds and strategy knobs as the code sets them, under the diagnosis
+    ``settings`` (default: the code's defaults)."""
+    settings = DiagnosisSettings() if settings is None else settings
     def plain(obj):
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(obj).items()}
 
@@ -166,9 +168,8 @@ def _frozen_method() -> dict:
                                "z_significant": getattr(strategy.metric, "z_significant", None),
                                "structure": plain(strategy.structure),
                                "model_form": _allowance_record(strategy, concept)}
-    spanning = DiagnosisSettings().spanning_forms
-    return {"catalogue": {c: catalogue_families(c, spanning) for c in PROTOCOL_SELFCHECK["concepts"]},
-            "thresholds": plain(Thresholds()), "settings": plain(DiagnosisSettings()),
+    return {"catalogue": {c: catalogue_families(c, settings.spanning_forms) for c in PROTOCOL_SELFCHECK["concepts"]},
+            "thresholds": plain(Thresholds()), "settings": plain(settings),
             "constants": {"Z_HELD_OUT": attribute.Z_HELD_OUT, "PROFILE_POINTS": attribute.PROFILE_POINTS,
                           "SHRINK_BLOCKS": attribute.SHRINK_BLOCKS, "SHRINK_REPLICATES": attribute.SHRINK_REPLICATES,
                           "STROKE_BINS": structure.STROKE_BINS, "BANDS": [list(b) for b in structure.BANDS],
@@ -204,10 +205,12 @@ PROTOCOL_HEADER = """\
 
 
 def freeze(path, *, root: Path = ROOT, development: list[int] | None = None, evaluation: list[int] | None = None,
-           new_evaluation: bool = False) -> dict:
+           new_evaluation: bool = False, method_version: int | None = None) -> dict:
     """Write the protocol at ``path``: the sources' hash, catalogue, thresholds and knobs, the
     self-check settings and targets, the seed blocks (kept from an existing file unless the hash
-    changed or ``new_evaluation``: then the evaluation block is spent and a fresh one drawn)."""
+    changed or ``new_evaluation``: then the evaluation block is spent and a fresh one drawn).
+    ``method_version`` freezes that version's settings (:func:`method_settings`) instead of the
+    code's defaults, e.g. a version under evaluation beside the default one in a file of its own."""
     path = Path(path)
     old = load_protocol(path) if path.is_file() else None
     combined, each = hash_sources(root)
@@ -231,7 +234,8 @@ def freeze(path, *, root: Path = ROOT, development: list[int] | None = None, eva
     protocol = {
         "frozen": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "sources": {"sha256": combined, "files": each},
-        **_frozen_method(),
+        **({} if method_version is None else {"method_version": method_version}),
+        **_frozen_method(None if method_version is None else method_settings(method_version)),
         "selfcheck": {**PROTOCOL_SELFCHECK,
                       "targets": {k: {"rate": prop, "target": t, "side": side} for k, (prop, t, side) in TARGETS.items()},
                       "status_rule": "met / not met only where the one-sided 95 % Clopper-Pearson bound shows it, "
@@ -448,6 +452,11 @@ def main() -> None:
         parser.add_argument("--freeze", action="store_true", help="write the hash, catalogue, thresholds and blocks")
         parser.add_argument("--new-evaluation", action="store_true",
                             help="with --freeze: spend the evaluation block and draw a fresh one")
+        parser.add_argument("--method-version", type=int, choices=tuple(METHOD_VERSIONS),
+                            help="with --freeze: freeze this method version's settings, not the code's defaults")
+        parser.add_argument("--evaluation-seeds", type=int, nargs="+", metavar="SEED",
+                            help="with --freeze: these evaluation seeds (a new protocol file beside another "
+                                 "protocol's, whose seeds must not be reused)")
         parser.add_argument("--jobs", type=int, default=1)
         parser.add_argument("--chunk", metavar="I/N",
                             help="run only every N-th case from case I (counted from 0) of every seed (a scattered "
@@ -467,7 +476,8 @@ def main() -> None:
         if args.freeze == bool(args.block):
             parser.error("give either --freeze, --block or --attest-equivalent")
         if args.freeze:
-            p = freeze(args.protocol, new_evaluation=args.new_evaluation)
+            p = freeze(args.protocol, new_evaluation=args.new_evaluation, method_version=args.method_version,
+                       evaluation=args.evaluation_seeds)
             print(f"froze {args.protocol}: sources {p['sources']['sha256'][:12]}..., development seeds "
                   f"{p['blocks']['development']['seeds']}, evaluation seeds {p['blocks']['evaluation']['seeds']}"
                   + (f", spent {p['blocks']['evaluation']['spent']}" if p['blocks']['evaluation']['spent'] else ""))

@@ -368,7 +368,7 @@ def station(flags, th, c, t, k, omega_tp, sign_tp, cos_angle, f_tp, f_er, b_ts, 
             c_ts = c_ts + th[int(c[t + FX_LOAD_FRICTION])] * r * abs(f_er)
         else:  # μ (1 + a) against a load that opposes the motion (M_ER along Ω), μ (1 - a) with one that aids it
             p_ld = int(c[t + FX_LOAD_FRICTION_DIRECTIONAL])
-            opposing = sign_tp if -r_scg * f_er > 0.0 else (-sign_tp if f_er != 0.0 else 0.0)
+            opposing = sign_tp if -r_scg * f_er > 0.0 else -sign_tp   # at F = 0 the term is 0 anyway
             c_ts = c_ts + th[p_ld] * (1.0 + th[p_ld + 1] * opposing) * r * abs(f_er)
     if flags is not None and flags & ANY_STRIBECK:
         c_ts = c_ts * f_tp

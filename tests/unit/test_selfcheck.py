@@ -244,6 +244,25 @@ def test_protocol_refuses_the_evaluation_block_when_a_source_changed(tmp_path, m
     assert bench.check_sources(bench.load_protocol(protocol), root=root) is None
 
 
+def test_a_method_version_is_frozen_with_its_own_settings_and_catalogue(tmp_path):
+    """A version under evaluation is frozen in a file of its own (the default version's protocol
+    untouched); a protocol that predates a setting runs without it."""
+    bench = _bench()
+    root = _copy_of_the_sources(bench, tmp_path / "repo")
+    frozen = bench.freeze(tmp_path / "v4.yaml", root=root, development=[11], evaluation=[5205], method_version=4)
+    assert frozen["method_version"] == 4 and frozen["settings"]["spanning_forms"] is True
+    assert frozen["catalogue"]["lths"]["load_dependent_friction"] == ["load_dependent_friction",
+                                                                      "load_friction_directional"]
+    assert bench.protocol_settings(frozen).spanning_forms is True
+    default = bench.freeze(tmp_path / "default.yaml", root=root, development=[11], evaluation=[5206])
+    assert "method_version" not in default and default["catalogue"]["lths"]["stribeck"] == ["stribeck"]
+    older = {k: v for k, v in default["settings"].items() if k != "spanning_forms"}
+    assert bench.protocol_settings({"settings": older}).spanning_forms is False
+    assert bench.method_settings(4) == bench.protocol_settings(frozen)
+    with pytest.raises(SystemExit, match="no method version 7"):
+        bench.method_settings(7)
+
+
 def test_the_committed_protocol_fixes_catalogue_thresholds_and_blocks():
     bench = _bench()
     protocol = bench.load_protocol(ROOT / "benchmarks" / "gap_protocol.yaml")
