@@ -7,7 +7,12 @@ script runs the frozen method on the variants written after version 2 was frozen
 (direction-dependent ball-screw efficiency, direction-asymmetric Stribeck friction,
 sample-and-hold sensors) and three mechanisms outside the catalogue (friction warm-up during a
 record, a periodic linearity error of the position sensors, a force offset of the load rig),
-each per concept and sensor set, the in-catalogue ones also with their family left out.
+each per concept and sensor set, the in-catalogue ones also with their family left out. A protocol
+that names ``variant_set: UNSEEN_VARIANTS_2`` (``benchmarks/gap_unseen2.yaml``) runs instead the
+second set, written for the evaluation of method version 4 (a torque ripple proportional to the
+motor torque, a U-joint angle growing with the stroke, window-averaging sensors; outside the
+catalogue a saturating torque constant, a PI speed loop and a speed feed-forward); without the key
+the set is the first.
 
 The protocol (``benchmarks/gap_unseen.yaml``, committed before the run) fixes the seeds, the
 cases and the scoring; the run refuses unless the diagnosis sources hash to a value the method
@@ -16,7 +21,7 @@ case's outcome is kept under ``results/<sources hash>/seed<S>/`` (a rerun resume
 nothing twice); the scores go to ``<results>.json`` and are printed beside those of the method's
 evaluation block.
 
-Usage: python benchmarks/gap_unseen.py [--protocol benchmarks/gap_unseen.yaml] [--jobs N]
+Usage: python benchmarks/gap_unseen.py [--protocol benchmarks/gap_unseen.yaml|gap_unseen2.yaml] [--jobs N]
        python benchmarks/gap_unseen.py --development VERSION --results DIR [--jobs N]   (a method not frozen)
 """
 from __future__ import annotations
@@ -28,20 +33,28 @@ from pathlib import Path
 import yaml
 
 from ema_uq.gap.selfcheck import SelfCheckResult, self_check, unseen_cases
-from ema_uq.gap.variant_catalogue import UNSEEN_VARIANTS
+from ema_uq.gap.variant_catalogue import UNSEEN_SETS
 from gap import (METHOD_VERSIONS, ROOT, check_sources, load_protocol, method_settings, outcome_hash, protocol_settings,
                  side_by_side)
 
 
+#: the variant set of a protocol that names none (the first protocol, written before there were two)
+DEFAULT_VARIANT_SET = "UNSEEN_VARIANTS"
+
+
 def load_unseen_protocol(path: Path) -> dict:
     """The protocol, checked against the variants it names (a variant renamed or moved to
-    another family since it was written stops the run)."""
+    another family since it was written stops the run); ``variant_set`` (default
+    :data:`DEFAULT_VARIANT_SET`) names the set of :data:`~ema_uq.gap.variant_catalogue.UNSEEN_SETS`."""
     with open(path, encoding="utf-8") as fh:
         protocol = yaml.safe_load(fh)
     if not isinstance(protocol, dict) or "variants" not in protocol or not protocol.get("seeds"):
         raise SystemExit(f"{path}: not an unseen-variant protocol (needs seeds and variants)")
+    variant_set = protocol.get("variant_set", DEFAULT_VARIANT_SET)
+    if variant_set not in UNSEEN_SETS:
+        raise SystemExit(f"{path} names the variant set {variant_set!r}; give one of {', '.join(UNSEEN_SETS)}")
     named = {k: v.get("family") for k, v in protocol["variants"].items()}
-    written = {k: v.family for k, v in UNSEEN_VARIANTS.items()}
+    written = {k: v.family for k, v in UNSEEN_SETS[variant_set].items()}
     if named != written:
         raise SystemExit(f"{path} names the variants {named}, the code has {written}: the protocol no longer "
                          "describes the cases; write a new protocol with a new seed")
@@ -72,7 +85,8 @@ def main() -> None:
     seeds = [int(seed) for seed in protocol["seeds"]]
     parts = {}
     for seed in seeds:
-        cases = unseen_cases(seed, protocol["concepts"], protocol["sensors"])
+        cases = unseen_cases(seed, protocol["concepts"], protocol["sensors"],
+                             protocol.get("variant_set", DEFAULT_VARIANT_SET))
         if len(cases) != int(protocol["n_cases_per_seed"]):
             raise SystemExit(f"{len(cases)} cases built, the protocol states {protocol['n_cases_per_seed']}")
         parts[seed] = self_check(cases=cases, seed=seed, settings=protocol_settings(method), jobs=args.jobs,
@@ -107,7 +121,8 @@ def development(protocol: dict, version: int, results: Path, jobs: int) -> None:
     settings = method_settings(version)
     outcomes, wall = [], 0.0
     for seed in seeds:
-        cases = unseen_cases(seed, protocol["concepts"], protocol["sensors"])
+        cases = unseen_cases(seed, protocol["concepts"], protocol["sensors"],
+                             protocol.get("variant_set", DEFAULT_VARIANT_SET))
         part = self_check(cases=cases, seed=seed, settings=settings, jobs=jobs, cache=results / f"seed{seed}",
                           progress=lambda line, s=seed: print(f"seed {s} {line}", flush=True))
         outcomes += part.outcomes

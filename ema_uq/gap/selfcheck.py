@@ -52,9 +52,10 @@ longer name the physics in the records, so the right verdict is a flag: ``unexpl
 ``ambiguous``. Slot ``200 + i`` for the i-th variant: other records than its ``effect`` case.
 
 Variants written after method version 2 was frozen (:func:`unseen_cases`, slots ``300 + i`` and
-``400 + i`` of :data:`~ema_uq.gap.variant_catalogue.UNSEEN_VARIANTS`): never in this list, so
-that the frozen method can be run once on mechanisms nobody tuned it on
-(``benchmarks/gap_unseen.py``).
+``400 + i`` of :data:`~ema_uq.gap.variant_catalogue.UNSEEN_VARIANTS`) and for the evaluation of
+method version 4 (``variant_set="UNSEEN_VARIANTS_2"``, slots ``500 + i`` and ``600 + i`` of
+:data:`~ema_uq.gap.variant_catalogue.UNSEEN_VARIANTS_2`): never in this list, so that a frozen
+method can be run once on mechanisms nobody tuned it on (``benchmarks/gap_unseen.py``).
 
 Model-form stress of no-effect cases: every odd-numbered none case (``none#1``, ``#3``, ...)
 is *stressed*: its records differ from the fitted model in ways a rig always does
@@ -107,7 +108,8 @@ from .candidates import SPANNING_FORMS
 from .strategy import DiagnosisSettings
 from ..errors import EmaUqError
 from .selfcheck_scores import Case, CaseOutcome, SelfCheckResult, _num
-from .variants import CONCEPTS, UNSEEN_VARIANTS, VARIANTS, draw_stress, draw_variant_parameters, make_records
+from .variant_catalogue import UNSEEN_SETS
+from .variants import CONCEPTS, VARIANTS, draw_stress, draw_variant_parameters, make_records
 
 # The scores and their targets stay importable from here, where they were defined before they
 # had a room of their own (the command line, the benchmark and the tests reach them so).
@@ -124,6 +126,8 @@ NONE_SLOT = 100                  # slot of the first none case (variants take 0.
 LEFT_OUT_SLOT = 200              # slot of the left-out case of variant i: LEFT_OUT_SLOT + i
 UNSEEN_SLOT = 300                # unseen variant i (UNSEEN_VARIANTS): slot 300 + i, left out: 400 + i
 UNSEEN_LEFT_OUT_SLOT = 400
+#: first slots (effect, left out) of each unseen set, apart from each other and the self-check's
+UNSEEN_SLOTS = {"UNSEEN_VARIANTS": (UNSEEN_SLOT, UNSEEN_LEFT_OUT_SLOT), "UNSEEN_VARIANTS_2": (500, 600)}
 PARAMETER_STREAM = 1             # variant parameters come from default_rng((case seed, PARAMETER_STREAM))
 STRESS_STREAM = 2                # stress of a stressed none case from default_rng((case seed, STRESS_STREAM))
 CALIBRATION_SEEDS = frozenset(range(100, 104))
@@ -176,11 +180,12 @@ def under_catalogue(case: Case, settings: DiagnosisSettings | None) -> Case:
 
 
 def _case(seed: int, concept: str, sensors: str, variant: str | None, none_index: int = 0,
-          left_out: bool = False, unseen: bool = False) -> Case:
-    registry = UNSEEN_VARIANTS if unseen else VARIANTS
+          left_out: bool = False, unseen: str | None = None) -> Case:
+    """A case of the self-check's variants, or of the unseen set named ``unseen`` (:data:`UNSEEN_SLOTS`)."""
+    registry = UNSEEN_SETS[unseen] if unseen else VARIANTS
     names = list(registry)
     family = None if variant is None else registry[variant].family
-    first, first_left_out = (UNSEEN_SLOT, UNSEEN_LEFT_OUT_SLOT) if unseen else (0, LEFT_OUT_SLOT)
+    first, first_left_out = UNSEEN_SLOTS[unseen] if unseen else (0, LEFT_OUT_SLOT)
     stressed, candidates = variant is None and none_index % 2 == 1, None
     if left_out:
         if family is None:
@@ -250,19 +255,24 @@ def build_cases(concepts: Sequence[str] = CONCEPTS, *, seed: int = DEFAULT_SEED,
     return [c for c in cases if c.kind in kinds]
 
 
-def unseen_cases(seed: int, concepts: Sequence[str] = CONCEPTS, sensors: Sequence[str] = SENSOR_SETS) -> list[Case]:
-    """The cases of the variants written after method version 2 was frozen
-    (:data:`~ema_uq.gap.variant_catalogue.UNSEEN_VARIANTS`), per concept x sensor set: every one
-    once, and every in-catalogue one once more with its family left out. Their slots (300 + i,
-    400 + i) are none of the self-check's, so no record repeats one of its cases."""
+def unseen_cases(seed: int, concepts: Sequence[str] = CONCEPTS, sensors: Sequence[str] = SENSOR_SETS,
+                 variant_set: str = "UNSEEN_VARIANTS") -> list[Case]:
+    """The cases of an unseen variant set (:data:`~ema_uq.gap.variant_catalogue.UNSEEN_SETS`: the
+    variants written after method version 2 was frozen, or ``UNSEEN_VARIANTS_2``, written for
+    the evaluation of version 4), per concept x sensor set: every one once, and every
+    in-catalogue one once more with its family left out. Each set has its own slots
+    (:data:`UNSEEN_SLOTS`), none of the self-check's, so no record repeats another case's."""
+    if variant_set not in UNSEEN_SETS:
+        raise SelfCheckError(f"unknown unseen variant set {variant_set!r}; choose from {', '.join(UNSEEN_SETS)}")
     concepts, sensors = list(concepts), list(sensors)
     _check_concepts_and_sensors(concepts, sensors)
+    registry = UNSEEN_SETS[variant_set]
     cases = []
     for concept in concepts:
         for s in sensors:
-            cases += [_case(seed, concept, s, v, unseen=True) for v in UNSEEN_VARIANTS]
-            cases += [_case(seed, concept, s, v, left_out=True, unseen=True)
-                      for v, var in UNSEEN_VARIANTS.items() if var.family is not None]
+            cases += [_case(seed, concept, s, v, unseen=variant_set) for v in registry]
+            cases += [_case(seed, concept, s, v, left_out=True, unseen=variant_set)
+                      for v, var in registry.items() if var.family is not None]
     return cases
 
 

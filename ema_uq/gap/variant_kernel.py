@@ -15,8 +15,9 @@ from numba import njit
 from ..models import get_model
 from .variant_catalogue import (TWO_PI, V_BACKLASH_TWO_MASS, V_CARDAN, V_DEADZONE, V_LOAD_EFFICIENCY, V_LOAD_FOLLOW,
                                 V_LOAD_LINEAR, V_LOAD_OFFSET, V_LOAD_POWER, V_NONE, V_POSITION_SENSOR, V_RIPPLE,
-                                V_SHAFT_TWO_MASS, V_SPOT, V_STRIBECK_ASYMMETRIC, V_STRIBECK_EXP, V_STRIBECK_GAUSS,
-                                V_STRIBECK_RATIONAL, V_TORQUE_LAG, V_WARM_UP, Variant, VariantError)
+                                V_RIPPLE_PROPORTIONAL, V_SHAFT_TWO_MASS, V_SPEED_FEEDFORWARD, V_SPEED_INTEGRAL, V_SPOT,
+                                V_STRIBECK_ASYMMETRIC, V_STRIBECK_EXP, V_STRIBECK_GAUSS, V_STRIBECK_RATIONAL,
+                                V_TORQUE_LAG, V_TORQUE_SATURATION, V_UJOINT_SWIVEL, V_WARM_UP, Variant, VariantError)
 
 #: ripple periods per motor revolution (as the catalogue's torque_ripple)
 RIPPLE_PERIODS = {"htls": 6.0, "lths": 4.0}
@@ -25,6 +26,10 @@ LOAD_REFERENCE = 10e3       # N, F_ref of the power-law load friction
 LOAD_EXPONENT = 1.2
 CONTACT_RAMP = 0.1          # fraction of the output play over which the load is taken up
 EFFICIENCY_POWER = 5.0      # W, P0 of the smoothed switch between opposing and aiding load
+STROKE_REFERENCE = 0.25     # m, carriage stroke at which the swivelling joints reach their stated angle
+#: A, current at which the saturating torque constant has fallen by s / (1 + s): about the
+#: peak motor current of deploy-retract, so s reads as the fall where the drive works hardest
+SATURATION_CURRENT = {"htls": 30.0, "lths": 25.0}
 
 
 # ------------------------------------------------------------------------------------------
@@ -47,8 +52,9 @@ CONSTANT_LAYOUT = ("omega_eps", "r", "gamma", "beta1", "beta2", "k_y", "M_Bmax",
  K_DIS, K_MMIN, K_MMAX, K_UMAX, K_LEAD, K_RSC, K_INVCB1, K_INVCB2) = range(22)
 
 #: state layout after the concept offset o (LT/HS: x[0] = I_A, o = 1; HT/LS: o = 0)
-(S_OMEGA, S_Y1, S_Y2, S_THETA, S_LOAD_SPEED, S_LOAD_ANGLE, S_LAG, S_CARRIAGE1, S_CARRIAGE2) = range(9)
-N_STATE = 10
+(S_OMEGA, S_Y1, S_Y2, S_THETA, S_LOAD_SPEED, S_LOAD_ANGLE, S_LAG, S_CARRIAGE1, S_CARRIAGE2,
+ S_SPEED_INTEGRAL) = range(10)
+N_STATE = 11
 
 HTLS_OUTPUTS = ("Omega", "y1", "y2", "I_A", "Omega_TP1", "Omega_TP2", "Omega_U1", "Omega_U2",
                 "M_ER1", "M_ER2", "M_TSER1", "M_TSER2", "M_UER1", "M_UER2", "M_TPER1", "M_TPER2")
@@ -108,7 +114,7 @@ def _kernel_values(concept: str, variant: Variant | None, params: Mapping[str, f
                  RIPPLE_PERIODS[concept])
     elif kid in (V_LOAD_LINEAR, V_LOAD_POWER, V_TORQUE_LAG):
         v[0] = p["mu"] if kid != V_TORQUE_LAG else p["tau"]
-    elif kid == V_CARDAN:
+    elif kid in (V_CARDAN, V_UJOINT_SWIVEL):
         v[:4] = (p["beta1"], p["beta2"], p["phase1"], p["phase2"])
     elif kid == V_SPOT:
         v[:3] = (p["friction"], p["position"], p["width"])
@@ -124,6 +130,14 @@ def _kernel_values(concept: str, variant: Variant | None, params: Mapping[str, f
         v[:4] = (p["amplitude"], p["wavelength"], p["phase1"], p["phase2"])
     elif kid == V_LOAD_OFFSET:
         v[0] = math.copysign(p["offset"], p["direction"])
+    elif kid == V_RIPPLE_PROPORTIONAL:
+        v[:3] = (p["ratio"], p["phase"], RIPPLE_PERIODS[concept])
+    elif kid == V_TORQUE_SATURATION:
+        v[:2] = (p["saturation"], SATURATION_CURRENT[concept])
+    elif kid == V_SPEED_INTEGRAL:
+        v[0] = p["rate"]
+    elif kid == V_SPEED_FEEDFORWARD:  # motor radians per radian of phi_r on a rigid train
+        v[:2] = (p["fraction"], c[K_KY] / _carriage_per_motor_radian(concept, c))
     return v
 
 
@@ -166,13 +180,14 @@ def _station(k, vid, w_tp, a_tp, x, u, th, c, vv, o):
     Returns (Omega_U, M_ER, M_TSER, M_UER, carriage position)."""
     eps = c[K_EPS]
     s = STATION_STRIDE * k
+    nut = x[o + S_Y1 + k]
     ratio = 1.0
-    if vid == V_CARDAN:  # d phi_out / d phi_in of tan(phi_out) = tan(phi_in) / cos(beta)
-        cb = math.cos(vv[k])
+    if vid == V_CARDAN or vid == V_UJOINT_SWIVEL:  # d phi_out / d phi_in of tan(phi_out) = tan(phi_in) / cos(beta)
+        beta = vv[k] if vid == V_CARDAN else vv[k] * nut / STROKE_REFERENCE
+        cb = math.cos(beta)
         phi = a_tp + vv[2 + k]
         ratio = cb / (cb * cb * math.cos(phi) ** 2 + math.sin(phi) ** 2)
     w_u = ratio * w_tp
-    nut = x[o + S_Y1 + k]
     force = u[1 + k]
     contact = 1.0
     carriage = nut
@@ -234,13 +249,49 @@ def _two_mass(drive, load, omega, theta, w_load, a_load, inertia, vv, dx, o):
 
 
 @njit(cache=True, error_model="numpy")
-def _ripple(vid, theta, vv):
+def _ripple(vid, theta, torque, vv):
+    """Ripple torque at motor angle theta; the proportional form scales with the motor torque."""
+    if vid == V_RIPPLE_PROPORTIONAL:
+        return vv[0] * torque * math.sin(vv[2] * theta + vv[1])
     if vid != V_RIPPLE:
         return 0.0
     total = 0.0
     for j in range(3):
         total += vv[j] * math.sin((j + 1) * vv[6] * theta + vv[3 + j])
     return total
+
+
+@njit(cache=True, error_model="numpy")
+def _speed_command(vid, command, u, vv):
+    """The position loop's speed command; with feed-forward, plus k_ff x the motor speed that
+    follows the command's rate u[4]."""
+    if vid == V_SPEED_FEEDFORWARD:
+        return command + vv[0] * vv[1] * u[4]
+    return command
+
+
+@njit(cache=True, error_model="numpy")
+def _speed_loop_input(vid, speed_error, integral, vv):
+    """What the speed loop's gain multiplies: the error, plus k_i times its integral in a PI loop."""
+    if vid == V_SPEED_INTEGRAL:
+        return speed_error + vv[0] * integral
+    return speed_error
+
+
+@njit(cache=True, error_model="numpy")
+def _integrand(speed_error, command, limited):
+    """d/dt of the PI loop's integral: held while the output is clipped and the error would push it
+    further (anti-windup by conditional integration, as drives do)."""
+    if command != limited and speed_error * command > 0.0:
+        return 0.0
+    return speed_error
+
+
+@njit(cache=True, error_model="numpy")
+def _saturation(current, vv):
+    """Torque constant over its nominal value at ``current``: 1 / (1 + s (I / I_ref)^2)."""
+    q = current / vv[1]
+    return 1.0 / (1.0 + vv[0] * q * q)
 
 
 @njit(cache=True, error_model="numpy")
@@ -261,14 +312,19 @@ def _htls_rhs(vid, x, u, th, c, vv, dx, y, outputs):
                + _brake(brake, w_tp1, c))
     m_tper2 = (m_uer2 / i2 + th[T_BTP2] * w_tp2 + _coulomb(th[T_CTP2], w_tp2, eps, vid, vv)
                + _brake(brake, w_tp2, c))
-    command = th[T_PPCE] * (th[T_PACE] * (c[K_KY] * u[0] - 0.5 * (y1 + y2)) - omega)
+    speed_error = _speed_command(vid, th[T_PACE] * (c[K_KY] * u[0] - 0.5 * (y1 + y2)), u, vv) - omega
+    command = th[T_PPCE] * _speed_loop_input(vid, speed_error, x[S_SPEED_INTEGRAL], vv)
     m_n = min(max(command, c[K_MMIN]), c[K_MMAX])
+    if vid == V_SPEED_INTEGRAL:
+        dx[S_SPEED_INTEGRAL] = _integrand(speed_error, command, m_n)
     m_motor = m_n
     if vid == V_TORQUE_LAG:  # the lagged torque is what the current sensor sees
         m_motor = x[S_LAG]
         dx[S_LAG] = (m_n - m_motor) / vv[0]
     i_a = m_motor / th[T_KN]
-    drive = m_motor + _ripple(vid, theta, vv) - _brake(brake, omega, c)
+    if vid == V_TORQUE_SATURATION:  # the drive sets the current for the nominal constant
+        m_motor = m_motor * _saturation(i_a, vv)
+    drive = m_motor + _ripple(vid, theta, m_motor, vv) - _brake(brake, omega, c)
     if two_mass:
         _two_mass(drive, m_tper1 + m_tper2, omega, theta, w_d, a_d, th[T_J], vv, dx, 0)
     else:
@@ -307,14 +363,19 @@ def _lths_rhs(vid, x, u, th, c, vv, dx, y, outputs):
     w_mg = omega / i_mg   # the magnetic gear turns with the motor (a compliance sits behind it)
     mg_loss = th[T_BMG] * w_mg + _coulomb(th[T_CMG], w_mg, eps, vid, vv)
     m_mger = m_iser / i_mg + mg_loss
-    command = th[T_PPCE] / th[T_KN] * (th[T_PACE] * (c[K_KY] * u[0] - 0.5 * (y1 + y2)) - omega)
+    speed_error = _speed_command(vid, th[T_PACE] * (c[K_KY] * u[0] - 0.5 * (y1 + y2)), u, vv) - omega
+    command = th[T_PPCE] / th[T_KN] * _speed_loop_input(vid, speed_error, x[1 + S_SPEED_INTEGRAL], vv)
     u_a = min(max(command, -c[K_UMAX]), c[K_UMAX])
+    if vid == V_SPEED_INTEGRAL:
+        dx[1 + S_SPEED_INTEGRAL] = _integrand(speed_error, command, u_a)
     dx[0] = (-th[T_RA] * i_a - th[T_KS] * omega + u_a) / th[T_LA]
     m_motor = th[T_KN] * i_a
+    if vid == V_TORQUE_SATURATION:
+        m_motor = m_motor * _saturation(i_a, vv)
     if vid == V_TORQUE_LAG:
         dx[1 + S_LAG] = (m_motor - x[1 + S_LAG]) / vv[0]
         m_motor = x[1 + S_LAG]
-    drive = m_motor + _ripple(vid, theta, vv)
+    drive = m_motor + _ripple(vid, theta, m_motor, vv)
     if two_mass:
         _two_mass(drive - mg_loss, m_iser / i_mg, omega, theta, w_d, a_d, th[T_J], vv, dx, 1)
     else:
@@ -339,9 +400,10 @@ def _rhs(concept_id, vid, x, u, th, c, vv, dx, y, outputs):
 
 @njit(cache=True, error_model="numpy")
 def _run(concept_id, vid, th, c, vv, inputs, h, n_sub, out):
-    """Fixed-step RK4 from rest over held inputs (n_samples, 4); outputs (n_samples, n_outputs)
-    at t_k from x(t_k) and u_k. The output play is projected after every step; the friction
-    warm-up's loss factor is held over each sample interval, as the inputs are."""
+    """Fixed-step RK4 from rest over held inputs (n_samples, 5: phi_r, F_ER1, F_ER2, brake and
+    phi_r's rate); outputs (n_samples, n_outputs) at t_k from x(t_k) and u_k. The output play is
+    projected after every step; the friction warm-up's loss factor is held over each sample
+    interval, as the inputs are."""
     o = concept_id  # LT/HS carries I_A ahead of the common states
     x = np.zeros(N_STATE)
     xt = np.empty(N_STATE)

@@ -45,8 +45,8 @@ import numpy as np
 
 from ..experiments import Experiment, Measurement, add_noise, deploy_retract, validation
 from ..models import get_model
-from .variant_catalogue import (CONCEPTS, UNSEEN_VARIANTS, VARIANTS, Variant, VariantError, _check_concept,
-                                check_variant_parameters, get_variant)
+from .variant_catalogue import (CONCEPTS, UNSEEN_VARIANTS, UNSEEN_VARIANTS_2, VARIANTS, Variant, VariantError,
+                                _check_concept, check_variant_parameters, get_variant)
 from .variant_kernel import KERNEL_OUTPUTS, _kernel_constants, _kernel_parameters, _kernel_values, _run
 
 # The variants and the kernel's layouts stay importable from here, where they were defined
@@ -102,6 +102,31 @@ def sample_hold(values: np.ndarray, period: float, offset: float, dt: float) -> 
     return out
 
 
+def window_average(values: np.ndarray, window: float, dt: float) -> np.ndarray:
+    """Every column of ``values`` (recorded at t_k = k dt) as a sensor that reports the mean of
+    its signal over the last ``window`` [s]: (1 / W) x the integral over [t_k - W, t_k] of the
+    cubic Hermite (Catmull-Rom) curve through the samples, integrated exactly; the signal is
+    taken as held at its first value before t_0."""
+    values = np.asarray(values, dtype=float)
+    if window == 0.0:
+        return values.copy()
+    n = values.shape[0]
+    k = np.arange(n)
+    p0, p1, p2, p3 = (values[np.clip(k + d, 0, n - 1)] for d in (-1, 0, 1, 2))
+    m1, m2 = 0.5 * (p2 - p0), 0.5 * (p3 - p1)
+    # the curve's integral from sample 0 to sample k, in sample units (a segment's: the Hermite weights' integrals)
+    segments = 0.5 * (p1 + p2) + (m1 - m2) / 12.0
+    whole = np.concatenate([np.zeros((1,) + values.shape[1:]), np.cumsum(segments[:-1], axis=0)])
+    start = k - window / dt
+    j = np.clip(np.floor(start).astype(np.int64), 0, n - 1)
+    f = np.clip(start - j, 0.0, 1.0)[:, None]
+    # integrals over [0, f] of the Hermite basis functions h00, h10, h01, h11
+    part = ((f ** 4 / 2 - f ** 3 + f) * p1[j] + (f ** 4 / 4 - 2 * f ** 3 / 3 + f ** 2 / 2) * m1[j]
+            + (-f ** 4 / 2 + f ** 3) * p2[j] + (f ** 4 / 4 - f ** 3 / 3) * m2[j])
+    before = np.minimum(start, 0.0)[:, None] * values[0]   # the held first value ahead of t_0
+    return (whole - np.where(start[:, None] >= 0.0, whole[j] + part, before)) * dt / window
+
+
 def thiran_coefficients(delay: float, order: int) -> np.ndarray:
     """Denominator a_0..a_N of the order-N Thiran all-pass of ``delay`` samples (stable for delay > N - 1)."""
     a = np.ones(order + 1)
@@ -140,6 +165,8 @@ def _measure(concept: str, variant: Variant | None, params: Mapping[str, float],
         return delay_allpass(out, params["tau"], dt)
     if variant.name == "sensor_delay_sample_hold":
         return sample_hold(out, params["period"], params["offset"], dt)
+    if variant.name == "sensor_delay_window":
+        return window_average(out, params["window"], dt)
     if variant.name == "current_sensor_error":
         out = out.copy()
         k = KERNEL_OUTPUTS[concept].index("I_A")
@@ -204,6 +231,8 @@ def simulate_variant(concept: str, experiment: Experiment, base=None, variant: s
         [experiment.inputs.get(n, np.zeros_like(experiment.time)) for n in ("phi_r", "F_ER1", "F_ER2", "brake")]))
     if input_filter:
         inputs[:, 0] = shape_command(inputs[:, 0], input_filter, dt)
+    # the command's rate as a drive differentiates its sampled set point (a speed feed-forward reads it)
+    inputs = np.column_stack([inputs, np.concatenate([[0.0], np.diff(inputs[:, 0]) / dt])])
     names = KERNEL_OUTPUTS[concept]
     out = np.empty((experiment.n_samples, len(names)))
     _run(CONCEPTS.index(concept), 0 if var is None else var.kernel_id, th, c, vv, inputs, dt / n_sub, n_sub, out)
@@ -419,7 +448,8 @@ def visibility(concept: str, variant: str, params: Mapping[str, float], *, exper
 
 
 __all__ = ["CONCEPTS", "FAMILIES", "REALISTIC_CHANNELS", "STRESS_CONSTANTS", "STRESS_RANGES", "UNSEEN_VARIANTS",
-           "VARIANTS", "Variant", "VariantError", "VariantParameter", "check_stress", "check_variant_parameters",
-           "coloured_noise", "delay_allpass", "delay_hermite", "draw_stress", "draw_variant_parameters", "get_variant",
-           "make_records", "perturbed_base", "quantise", "read_between_samples", "record_channels", "sample_hold", "shape_command",
-           "simulate_variant", "validation_scaled", "visibility"]
+           "UNSEEN_VARIANTS_2", "VARIANTS", "Variant", "VariantError", "VariantParameter", "check_stress",
+           "check_variant_parameters", "coloured_noise", "delay_allpass", "delay_hermite", "draw_stress",
+           "draw_variant_parameters", "get_variant", "make_records", "perturbed_base", "quantise",
+           "read_between_samples", "record_channels", "sample_hold", "shape_command", "simulate_variant",
+           "validation_scaled", "visibility", "window_average"]

@@ -366,7 +366,36 @@ def test_unseen_cases_are_new_records_of_the_unseen_variants_only():
     assert not {c.variant for c in selfcheck.build_cases(seed=5301)} & set(UNSEEN_VARIANTS)
 
 
-def test_the_unseen_protocol_describes_the_cases_it_runs(tmp_path, monkeypatch):
+def test_the_second_unseen_set_has_cases_of_its_own():
+    from ema_uq.gap.variant_catalogue import UNSEEN_VARIANTS, UNSEEN_VARIANTS_2
+
+    second = selfcheck.unseen_cases(5401, variant_set="UNSEEN_VARIANTS_2")
+    inside = [v for v, var in UNSEEN_VARIANTS_2.items() if var.family is not None]
+    assert len(second) == 2 * 2 * (len(UNSEEN_VARIANTS_2) + len(inside))
+    assert {c.variant for c in second} == set(UNSEEN_VARIANTS_2)
+    assert {c.kind for c in second if c.family is None} == {"out_of_catalogue"}
+    for case in (c for c in second if c.kind == "left_out"):
+        assert case.variant in inside and case.family == UNSEEN_VARIANTS_2[case.variant].family
+        assert not set(case.candidates) & set(selfcheck.catalogue_families(case.concept)[case.family])
+    # no record repeats one of the self-check's or of the first set, at this seed or the first set's
+    for seed in (5401, 5301):
+        others = selfcheck.build_cases(seed=seed) + selfcheck.unseen_cases(seed)
+        mine = selfcheck.unseen_cases(seed, variant_set="UNSEEN_VARIANTS_2")
+        assert not {c.seed for c in mine} & {c.seed for c in others}
+    assert len({c.seed for c in second}) == len(second)
+    assert not {c.variant for c in selfcheck.build_cases(seed=5401)} & set(UNSEEN_VARIANTS_2)
+    # the first set stays the default
+    first = selfcheck.unseen_cases(5301)
+    assert first == selfcheck.unseen_cases(5301, variant_set="UNSEEN_VARIANTS")
+    assert {c.variant for c in first} == set(UNSEEN_VARIANTS)
+    with pytest.raises(selfcheck.SelfCheckError, match="unknown unseen variant set") as info:
+        selfcheck.unseen_cases(5401, variant_set="UNSEEN_VARIANTS_3")
+    assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("protocol_file, variant", [("gap_unseen.yaml", "stribeck_asymmetric"),
+                                                    ("gap_unseen2.yaml", "ujoint_swivel")])
+def test_the_unseen_protocol_describes_the_cases_it_runs(tmp_path, monkeypatch, protocol_file, variant):
     import sys
 
     # the script imports its sibling benchmarks/gap.py as ``gap``, as when it is run
@@ -375,12 +404,17 @@ def test_the_unseen_protocol_describes_the_cases_it_runs(tmp_path, monkeypatch):
     spec = importlib.util.spec_from_file_location("gap_unseen_bench", ROOT / "benchmarks" / "gap_unseen.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
-    protocol = module.load_unseen_protocol(ROOT / "benchmarks" / "gap_unseen.yaml")
-    cases = selfcheck.unseen_cases(int(protocol["seeds"][0]), protocol["concepts"], protocol["sensors"])
+    protocol = module.load_unseen_protocol(ROOT / "benchmarks" / protocol_file)
+    variant_set = protocol.get("variant_set", module.DEFAULT_VARIANT_SET)
+    cases = selfcheck.unseen_cases(int(protocol["seeds"][0]), protocol["concepts"], protocol["sensors"], variant_set)
     assert len(cases) == protocol["n_cases_per_seed"]
+    assert {c.variant for c in cases} == set(protocol["variants"])
     # a protocol that no longer names the code's variants and families stops the run
-    changed = dict(protocol, variants={**protocol["variants"], "stribeck_asymmetric": {"family": "backlash"}})
+    changed = dict(protocol, variants={**protocol["variants"], variant: {"family": "backlash"}})
     path = tmp_path / "unseen.yaml"
     path.write_text(yaml.safe_dump(changed), encoding="utf-8")
     with pytest.raises(SystemExit, match="no longer describes the cases"):
+        module.load_unseen_protocol(path)
+    path.write_text(yaml.safe_dump(dict(protocol, variant_set="UNSEEN_VARIANTS_9")), encoding="utf-8")
+    with pytest.raises(SystemExit, match="names the variant set"):
         module.load_unseen_protocol(path)

@@ -57,7 +57,7 @@ def nominal_outputs():
     return experiment, out
 
 
-@pytest.mark.parametrize("name", list(V.VARIANTS) + list(V.UNSEEN_VARIANTS))
+@pytest.mark.parametrize("name", list(V.VARIANTS) + list(V.UNSEEN_VARIANTS) + list(V.UNSEEN_VARIANTS_2))
 def test_every_variant_is_visible_at_its_weakest(name, nominal_outputs):
     experiment, nominal = nominal_outputs
     variant = V.get_variant(name)
@@ -76,7 +76,13 @@ def test_families_and_descriptions():
     assert {v.family for v in V.VARIANTS.values() if v.name.startswith("backlash")} == {"backlash"}
     assert {v.family for v in V.UNSEEN_VARIANTS.values()} - {None} <= set(V.FAMILIES)
     assert not set(V.UNSEEN_VARIANTS) & set(V.VARIANTS)
-    for v in [*V.VARIANTS.values(), *V.UNSEEN_VARIANTS.values()]:
+    second = [v.family for v in V.UNSEEN_VARIANTS_2.values()]
+    assert set(second) - {None} <= set(V.FAMILIES) and second.count(None) == 3
+    assert len(set(second) - {None}) == 3                                  # at most one form per family
+    assert not set(V.UNSEEN_VARIANTS_2) & (set(V.VARIANTS) | set(V.UNSEEN_VARIANTS))
+    earlier = {v.kernel_id for v in [*V.VARIANTS.values(), *V.UNSEEN_VARIANTS.values()]}
+    assert all(v.kernel_id == 0 or v.kernel_id > max(earlier) for v in V.UNSEEN_VARIANTS_2.values())
+    for v in [*V.VARIANTS.values(), *V.UNSEEN_VARIANTS.values(), *V.UNSEEN_VARIANTS_2.values()]:
         assert v.description
         for p in v.parameters:
             for concept in ("htls", "lths"):
@@ -87,7 +93,7 @@ def test_families_and_descriptions():
 
 def test_draws_follow_their_ranges():
     rng = np.random.default_rng(7)
-    for name, variant in [*V.VARIANTS.items(), *V.UNSEEN_VARIANTS.items()]:
+    for name, variant in [*V.VARIANTS.items(), *V.UNSEEN_VARIANTS.items(), *V.UNSEEN_VARIANTS_2.items()]:
         for _ in range(20):
             values = V.draw_variant_parameters(name, rng, "lths")
             assert list(values) == list(variant.parameter_names)
@@ -299,3 +305,80 @@ def test_asymmetric_stribeck_lowers_the_breakaway_of_the_negative_direction_only
     assert positive == pytest.approx(level * (1.0 + 2.0 * (0.3 + 0.7 * 0.5 * (1.0 + sign)) * bump) * sign)
     assert negative == pytest.approx(-level * (1.0 + 2.0 * share_neg * bump) * sign)
     assert abs(negative) < abs(positive)
+
+
+# --- the variants written for the evaluation of method version 4 (UNSEEN_VARIANTS_2) --------
+def test_window_average_is_the_mean_over_the_last_window():
+    dt, window = 0.01, 0.037
+    t = np.arange(400) * dt
+    omega = 2 * np.pi * 0.7
+    slow = np.column_stack([np.sin(omega * t), 3.0 - 2.0 * t])
+    out = V.window_average(slow, window, dt)
+    inside = (t >= window + dt) & (t <= t[-3])
+    mean_sine = (np.cos(omega * (t - window)) - np.cos(omega * t)) / (omega * window)
+    np.testing.assert_allclose(out[inside, 0], mean_sine[inside], atol=2e-4)
+    np.testing.assert_allclose(out[inside, 1], 3.0 - 2.0 * (t[inside] - window / 2), atol=1e-12)  # a ramp: W/2 late
+    assert np.all(out[0] == slow[0])                 # held at the first value before t_0
+    np.testing.assert_array_equal(V.window_average(slow, 0.0, dt), slow)
+
+
+@pytest.mark.parametrize("concept", ["htls", "lths"])
+def test_second_unseen_variants_reduce_to_the_nominal_model_when_off(concept):
+    nominal = _outputs(concept)
+    for name, params in (("sensor_delay_window", {"window": 0.0}),
+                         ("torque_constant_saturation", {"saturation": 0.0}),
+                         ("speed_loop_integral", {"rate": 0.0}),
+                         ("speed_feedforward", {"fraction": 0.0})):
+        assert all(np.array_equal(nominal[ch], v) for ch, v in _outputs(concept, name, params).items()), name
+    # the ripple runs at a finer RK4 step (as the harmonics variant): the nominal model at that step
+    step = get_model(concept).integration_step / V.get_variant("torque_ripple_proportional").step_divisor
+    fine = V.simulate_variant(concept, validation(), step=step)
+    ripple = V.simulate_variant(concept, validation(), None, "torque_ripple_proportional", {"ratio": 0.0, "phase": 1.0})
+    np.testing.assert_array_equal(ripple, fine)
+    # a straight joint's ratio cos^2 + sin^2 of the yoke angle is 1 to rounding only
+    straight = _outputs(concept, "ujoint_swivel", {"beta1": 0.0, "beta2": 0.0, "phase1": 0.3, "phase2": 1.0})
+    for ch, v in straight.items():
+        np.testing.assert_allclose(v, nominal[ch], rtol=0, atol=1e-12 * max(np.ptp(nominal[ch]), 1.0), err_msg=ch)
+
+
+@pytest.mark.parametrize("concept", ["htls", "lths"])
+def test_second_unseen_variants_act_as_described(concept):
+    nominal = _outputs(concept)
+    # the swivelling joint's speed ratio stays within cos(beta(y)) .. 1/cos(beta(y)), its ripple
+    # small near the retracted end and large out along the stroke
+    swivel = _outputs(concept, "ujoint_swivel", {"beta1": 0.3, "beta2": 0.3, "phase1": 0.0, "phase2": 1.0})
+    moving = np.abs(swivel["Omega_TP1"]) > 1.0
+    ratio = swivel["Omega_U1"][moving] / swivel["Omega_TP1"][moving]
+    beta = 0.3 * swivel["y1"][moving] / 0.25
+    assert np.all(ratio <= 1.0 / np.cos(beta) + 1e-9) and np.all(ratio >= np.cos(beta) - 1e-9)
+    near, far = swivel["y1"][moving] < 0.05, swivel["y1"][moving] > 0.15
+    assert np.abs(ratio[near] - 1).max() < 0.1 * np.abs(ratio[far] - 1).max()
+    # a PI speed loop shrinks the standing position error at the end of each hold
+    constants = dict(zip(get_model(concept).constants.names, get_model(concept).constants.nominal))
+    phi = validation().inputs["phi_r"]
+    held = np.array([k >= 150 and np.ptp(phi[k - 150:k + 1]) == 0 for k in range(len(phi))])
+
+    def error(out):
+        return np.abs(constants["k_y"] * phi - 0.5 * (out["y1"] + out["y2"]))
+
+    pi = _outputs(concept, "speed_loop_integral", {"rate": 2.0})
+    assert error(pi)[held].mean() < 0.85 * error(nominal)[held].mean()
+    # speed feed-forward halves about the following error while the command moves
+    fed = _outputs(concept, "speed_feedforward", {"fraction": 0.5})
+    assert error(fed)[~held].mean() < 0.6 * error(nominal)[~held].mean()
+
+
+def test_proportional_ripple_and_saturation_follow_the_motor_torque_and_current():
+    from ema_uq.gap.variant_catalogue import V_RIPPLE, V_RIPPLE_PROPORTIONAL
+    from ema_uq.gap.variant_kernel import _ripple, _saturation
+
+    vv = np.array([0.05, 0.4, 6.0, 0, 0, 0, 0, 0.0])
+    theta = 0.3
+    for torque in (-20.0, 0.0, 7.5):
+        expected = 0.05 * torque * math.sin(6 * theta + 0.4)
+        assert _ripple(V_RIPPLE_PROPORTIONAL, theta, torque, vv) == pytest.approx(expected)
+    assert _ripple(V_RIPPLE_PROPORTIONAL, theta, 0.0, vv) == 0.0        # no torque, no ripple
+    assert _ripple(V_RIPPLE, theta, 0.0, np.array([0.1, 0, 0, 0, 0, 0, 6.0, 0])) != 0.0   # cogging has one
+    saturation = np.array([0.2, 30.0, 0, 0, 0, 0, 0, 0.0])
+    assert _saturation(30.0, saturation) == pytest.approx(1.0 / 1.2)
+    assert _saturation(-30.0, saturation) == _saturation(30.0, saturation) and _saturation(0.0, saturation) == 1.0
