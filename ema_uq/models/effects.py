@@ -469,7 +469,7 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (
         signature=("periodic", "high_load"), magnitude="ujoint_stations_scale1",
         family="ujoint_kinematics"),
     # forms that give a family the freedom its mechanism has on a drive with a one-sided load or a
-    # filtering sensor (method version 3 of the gap diagnosis; each nests the family's first form)
+    # filtering sensor (method version 4 of the gap diagnosis; each nests the family's first form)
     Effect(
         "stribeck_directional",
         "Coulomb friction rising near zero speed, by a breakaway excess that differs with the direction of "
