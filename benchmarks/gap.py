@@ -41,7 +41,7 @@ version 1, no ``model_form_allowance`` there) runs without it.
 
 Usage: python benchmarks/gap.py [--concept htls|lths|both] [--sensors full realistic] [--jobs N]
                                 [--quick] [--none-per-set N] [--kinds ...] [--none-from K] [--seed N]
-                                [--peer] [--out JSON] [--method-version 1|2|3|4]
+                                [--peer] [--out JSON] [--cache DIR] [--method-version 1|2|3|4]
        python benchmarks/gap.py --protocol benchmarks/gap_protocol.yaml --block development|evaluation
                                 [--jobs N] [--chunk I/N] [--results DIR]
        python benchmarks/gap.py --protocol benchmarks/gap_protocol.yaml --freeze [--new-evaluation]
@@ -498,6 +498,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=DEFAULT_SEED)
     parser.add_argument("--peer", action="store_true", help="also run the former circular self-check")
     parser.add_argument("--out", metavar="JSON", help="write scores and per-case table as JSON")
+    parser.add_argument("--cache", metavar="DIR", help="keep each case's outcome there and read it back (resume)")
     parser.add_argument("--method-version", type=int, choices=tuple(METHOD_VERSIONS), default=2,
                         help="; ".join(f"{v}: {what}" for v, what in METHOD_VERSIONS.items()) + " (default 2)")
     args = parser.parse_args()
@@ -506,7 +507,7 @@ def main() -> None:
     load = os.getloadavg()[0]
     result = self_check(seed=args.seed, quick=args.quick, concepts=concepts, sensors=args.sensors,
                         none_per_set=args.none_per_set, kinds=args.kinds, none_first=args.none_from, jobs=args.jobs,
-                        settings=method_settings(args.method_version),
+                        settings=method_settings(args.method_version), cache=args.cache,
                         progress=lambda line: print(line, flush=True))
     print()
     print(result.summary())
