@@ -8,7 +8,8 @@ Four candidates: stribeck, sensor_delay, shaft_compliance, load_dependent_fricti
 Columns, measured in this run on this machine, one numba and one BLAS thread (the share of one
 self-check worker): the method without the model-form allowance (version 1), with it
 (version 2, the default) and with it at the model contract's converged RK4 step where no effect
-brings faster dynamics (version 3: the ``converged_step`` option, tried and not adopted).
+brings faster dynamics (version 3: the ``converged_step`` option, tried and not adopted), and
+version 4 (version 2 with the spanning forms of the same families beside them: seven candidates).
 Beside them the figures the performance issue recorded before the
 work (HT/LS: 92 s, 636 simulations, on the code of that time) and its targets (HT/LS <= 20 s,
 LT/HS <= 45 s on one core). A warm-up diagnosis on a short record runs first so kernel
@@ -31,6 +32,8 @@ from ema_uq.gap.strategy import DiagnosisSettings  # noqa: E402
 from ema_uq.gap.variants import make_records  # noqa: E402
 
 CANDIDATES = ("stribeck", "sensor_delay", "shaft_compliance", "load_dependent_friction")
+#: method version 4 adds these forms of the same families (SPANNING_FORMS)
+SPANNING = ("stribeck_directional", "sensor_delay_dispersed", "load_friction_directional")
 VARIANT, PARAMS = "stribeck_rational", {"ratio": 1.0, "speed": 1.5}
 BEFORE = {"htls": (92.0, 636)}            # the issue's figures before the work (s, simulations)
 TARGET_S = {"htls": 20.0, "lths": 45.0}
@@ -38,10 +41,11 @@ TARGET_S = {"htls": 20.0, "lths": 45.0}
 
 def one(concept: str, seed: int, version: int) -> dict:
     estimation, validation, validation2, _ = make_records(concept, VARIANT, PARAMS, seed=seed)
-    settings = DiagnosisSettings(model_form_allowance=version >= 2, converged_step=version >= 3)
+    settings = DiagnosisSettings(model_form_allowance=version >= 2, converged_step=version == 3,
+                                 spanning_forms=version >= 4)
+    candidates = list(CANDIDATES) + (list(SPANNING) if version >= 4 else [])
     t0 = time.perf_counter()
-    result = diagnose([estimation], [validation, validation2], candidates=list(CANDIDATES), settings=settings,
-                      seed=seed)
+    result = diagnose([estimation], [validation, validation2], candidates=candidates, settings=settings, seed=seed)
     wall = time.perf_counter() - t0
     rows = {c.effect: c for c in result.ranking}
     return {"wall": wall, "sims": result.n_simulations, "verdict": result.verdict, "effect": result.effect,
@@ -54,7 +58,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=7)
     args = parser.parse_args()
     concepts = ("htls", "lths") if args.concept == "both" else (args.concept,)
-    versions = (1, 2, 3)
+    versions = (1, 2, 3, 4)
     for concept in concepts:
         one(concept, args.seed, 2)                            # warm-up: compile or load every kernel used
         runs = {v: one(concept, args.seed, v) for v in versions}
@@ -66,7 +70,7 @@ def main() -> None:
               + "".join(f"{runs[v]['wall']:16.1f}" for v in versions) + f"{TARGET_S[concept]:10.0f}")
         print(f"  {'simulations':40s}{(str(before[1]) if before else '-'):>16s}"
               + "".join(f"{runs[v]['sims']:16d}" for v in versions))
-        for name in CANDIDATES:
+        for name in CANDIDATES + SPANNING:
             cells = [runs[v]["per_candidate"].get(name) for v in versions]
             text = "".join(f"{f'{c[0]} / {c[1]:.1f} s' if c else '-':>16s}" for c in cells)
             print(f"  {'  ' + name + ' (sims / s)':40s}{'-':>16s}{text}")
