@@ -161,7 +161,9 @@ def _frozen_method(settings: DiagnosisSettings | None = None) -> dict:
     for concept in PROTOCOL_SELFCHECK["concepts"]:
         strategy = strategy_for(get_model(concept))
         strategies[concept] = {"name": strategy.name, "thresholds": plain(strategy.thresholds),
-                               "settings": plain(strategy.settings),
+                               # the concept's knobs under the frozen method's switches (what a block runs)
+                               "settings": plain(dataclasses.replace(strategy.settings,
+                                                                     spanning_forms=settings.spanning_forms)),
                                "start_multiples": [float(m) for m in strategy.start_multiples],
                                "where_source": strategy.where_source,
                                "metric": type(strategy.metric).__name__,

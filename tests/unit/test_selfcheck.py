@@ -251,6 +251,7 @@ def test_a_method_version_is_frozen_with_its_own_settings_and_catalogue(tmp_path
     root = _copy_of_the_sources(bench, tmp_path / "repo")
     frozen = bench.freeze(tmp_path / "v4.yaml", root=root, development=[11], evaluation=[5205], method_version=4)
     assert frozen["method_version"] == 4 and frozen["settings"]["spanning_forms"] is True
+    assert all(frozen["strategies"][c]["settings"]["spanning_forms"] is True for c in ("htls", "lths"))
     assert frozen["catalogue"]["lths"]["load_dependent_friction"] == ["load_dependent_friction",
                                                                       "load_friction_directional"]
     assert bench.protocol_settings(frozen).spanning_forms is True
