@@ -59,10 +59,13 @@ COUPLING = FLAG["backlash_compliant"]
 NUT_PLAY = FLAG["backlash_output"]
 STRIBECK_DIRECTIONAL = FLAG["stribeck_directional"]
 LOAD_FRICTION_DIRECTIONAL = FLAG["load_friction_directional"]
+RIPPLE_LOADED = FLAG["torque_ripple_loaded"]
+UJOINT_STROKE = FLAG["ujoint_stroke"]
+COMPLIANCE_LOADED = FLAG["shaft_compliance_loaded"]
 #: effects of one kind: a U-joint factor, a compliant coupling, a ripple torque
-ANY_UJOINT = UJOINT | UJOINT_STATIONS
-ANY_COUPLING = COMPLIANCE | COUPLING
-ANY_RIPPLE = RIPPLE | HARMONICS
+ANY_UJOINT = UJOINT | UJOINT_STATIONS | UJOINT_STROKE
+ANY_COUPLING = COMPLIANCE | COUPLING | COMPLIANCE_LOADED
+ANY_RIPPLE = RIPPLE | HARMONICS | RIPPLE_LOADED
 ANY_STRIBECK = STRIBECK | STRIBECK_DIRECTIONAL
 ANY_LOAD_FRICTION = LOAD_FRICTION | LOAD_FRICTION_DIRECTIONAL
 #: effects with extra states (frozen by the adaptive integrator at their magnitude's zero)
@@ -110,6 +113,14 @@ FX_HARMONICS = LAYOUT["torque_ripple_harmonics"]
 FX_HARMONICS_PERIODS = LAYOUT["torque_ripple_harmonics_periods"]  # fundamental periods per motor revolution
 FX_STRIBECK_DIRECTIONAL = LAYOUT["stribeck_directional"]
 FX_LOAD_FRICTION_DIRECTIONAL = LAYOUT["load_friction_directional"]
+FX_RIPPLE_LOADED = LAYOUT["torque_ripple_loaded"]
+FX_RIPPLE_LOADED_PERIODS = LAYOUT["torque_ripple_loaded_periods"]  # periods per motor revolution
+FX_UJOINT_STROKE = LAYOUT["ujoint_stroke"]
+FX_UJOINT_STROKE_MID = LAYOUT["ujoint_stroke_mid"]                # [m]
+FX_UJOINT_STROKE_HALF = LAYOUT["ujoint_stroke_half"]              # [m]
+FX_COMPLIANCE_LOADED = LAYOUT["shaft_compliance_loaded"]
+FX_LOADED_OMEGA_MAX = LAYOUT["shaft_compliance_loaded_mode_omega_max"]  # [rad/s]
+FX_LOADED_TORQUE_REF = LAYOUT["shaft_compliance_loaded_torque_ref"]     # [N m]
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -159,11 +170,13 @@ def _dead_band(q, band, width):
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _coupling_rate(net, load, j_motor, j_load, omega_n, zeta, q, q_rate, band, softness):
+def _coupling_rate(net, load, j_motor, j_load, omega_n, zeta, q, q_rate, band, softness, stiffening):
     """d²q/dt² of the modal two-inertia coupling: a plain spring (band < 0: shaft_compliance's
-    arithmetic, unchanged) or one acting beyond a dead band ±band (backlash_compliant)."""
+    arithmetic, unchanged at ``stiffening`` 1.0, the factor of shaft_compliance_loaded's stiffness)
+    or one acting beyond a dead band ±band (backlash_compliant)."""
     if band < 0.0:
-        return (net + load) / j_motor + load / j_load - omega_n * omega_n * q - 2.0 * zeta * omega_n * q_rate
+        return ((net + load) / j_motor + load / j_load - omega_n * omega_n * stiffening * q
+                - 2.0 * zeta * omega_n * q_rate)
     deflection, contact = _dead_band(q, band, softness * band)
     return ((net + load) / j_motor + load / j_load
             - omega_n * omega_n * deflection - 2.0 * zeta * omega_n * contact * q_rate)
@@ -237,12 +250,21 @@ def coupling(flags, x, th, c, t, omega, theta, band_ratio_a, band_ratio_b):
             load_fraction, omega_max = c[t + FX_COUPLING_LOAD_FRACTION], c[t + FX_COUPLING_OMEGA_MAX]
             softness = c[t + FX_COUPLING_SOFTNESS]
             band = th[p_bc] * band_ratio_a * band_ratio_b
+            hardening = 0.0
+        elif flags & COMPLIANCE_LOADED:
+            p_sc = int(c[t + FX_COMPLIANCE_LOADED])
+            x_sc = int(c[t + FX_COMPLIANCE_LOADED + 1])
+            load_fraction, omega_max = th[p_sc + 2], c[t + FX_LOADED_OMEGA_MAX]
+            softness = 0.0
+            band = -1.0
+            hardening = th[p_sc + 3] / c[t + FX_LOADED_TORQUE_REF]
         else:
             p_sc = int(c[t + FX_COMPLIANCE])
             x_sc = int(c[t + FX_COMPLIANCE + 1])
             load_fraction, omega_max = th[p_sc + 2], c[t + FX_MODE_OMEGA_MAX]
             softness = 0.0
             band = -1.0
+            hardening = 0.0
         period = th[p_sc]
         t_floor = TWO_PI / omega_max
         if period >= t_floor:
@@ -255,8 +277,9 @@ def coupling(flags, x, th, c, t, omega, theta, band_ratio_a, band_ratio_b):
         omega_m = omega + part * load_fraction * q_rate
         omega_s = omega - part * (1.0 - load_fraction) * q_rate
         theta_m = theta + part * load_fraction * q
-        return omega_m, omega_s, theta_m, (load_fraction, omega_n, zeta, q, q_rate, band, softness, x_sc)
-    return omega, omega, theta, (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1)
+        return (omega_m, omega_s, theta_m,
+                (load_fraction, omega_n, zeta, q, q_rate, band, softness, hardening, omega_max, x_sc))
+    return omega, omega, theta, (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1)
 
 
 @hook
@@ -265,11 +288,16 @@ def coupling_rates(flags, th_j, terms, net, load, dx):
     ``net`` is the torque on the whole inertia ``th_j``, ``load`` the drive train's torque on
     the motor side of the coupling."""
     if flags is not None and flags & ANY_COUPLING:
-        load_fraction, omega_n, zeta, q, q_rate, band, softness, x_sc = terms
+        load_fraction, omega_n, zeta, q, q_rate, band, softness, hardening, omega_max, x_sc = terms
         j_load = load_fraction * th_j
         j_motor = th_j - j_load
+        # shaft_compliance_loaded: k_0 (1 + h |M| / M_ref), the mode held below what the step resolves
+        stiffening = 1.0
+        if hardening > 0.0:
+            stiffening = min(1.0 + hardening * abs(load), (omega_max / omega_n) ** 2)
         dx[x_sc] = q_rate
-        dx[x_sc + 1] = _coupling_rate(net, load, j_motor, j_load, omega_n, zeta, q, q_rate, band, softness)
+        dx[x_sc + 1] = _coupling_rate(net, load, j_motor, j_load, omega_n, zeta, q, q_rate, band, softness,
+                                      stiffening)
 
 
 @hook
@@ -316,9 +344,13 @@ def stribeck_coulomb(flags, th, c, t, c_loss, speed):
 @njit(cache=True, inline="always", error_model="numpy")
 def _ujoint_positions(flags, c, t):
     """Positions in th of each station's U-joint ripple scale (its yoke phase follows it):
-    ujoint_kinematics' one pair for both stations, or ujoint_stations' own pair per station."""
+    ujoint_kinematics' (or ujoint_stroke's) one pair for both stations, or ujoint_stations' own
+    pair per station."""
     if flags & UJOINT:
         p_uj = int(c[t + FX_UJOINT])
+        return p_uj, p_uj
+    if flags & UJOINT_STROKE:
+        p_uj = int(c[t + FX_UJOINT_STROKE])
         return p_uj, p_uj
     p_us = int(c[t + FX_UJOINT_STATIONS])
     return p_us, p_us + 2
@@ -347,12 +379,12 @@ def station_terms(flags, th, c, t, omega_tp1, omega_tp2, angle1, angle2, eps):
 
 @hook
 def station(flags, th, c, t, k, omega_tp, sign_tp, cos_angle, f_tp, f_er, b_ts, c_ts, b_u, c_u, r_scg,
-            inv_cos_beta, r):
+            inv_cos_beta, r, position):
     """Ball screw and U-joint of station k (1, 2), eqs. 10-15, with the station effects:
     returns Ω_U, M_ER, M_TSER, M_UER.
 
     ``sign_tp``, ``cos_angle`` and ``f_tp`` come from :func:`station_terms`; ``r`` is the screw
-    radius (load-dependent friction). The U-joint and
+    radius (load-dependent friction), ``position`` the carriage's (ujoint_stroke). The U-joint and
     screw terms use the sign and Stribeck factor of Ω_TP: g_U > 0 never changes the direction,
     and the ripple (|g_U - 1| < 3 % at a = 6) hardly moves the Stribeck factor. Without
     effects, g_U = 1 (eq. 26) and Ω_U = Ω_TP.
@@ -361,7 +393,11 @@ def station(flags, th, c, t, k, omega_tp, sign_tp, cos_angle, f_tp, f_er, b_ts, 
     omega_u = omega_tp
     if flags is not None and flags & ANY_UJOINT:
         p_uj1, p_uj2 = _ujoint_positions(flags, c, t)
-        g_u = _ujoint_factor(cos_angle, th[p_uj1 if k == 1 else p_uj2], inv_cos_beta)
+        scale = th[p_uj1 if k == 1 else p_uj2]
+        if flags & UJOINT_STROKE:  # a (1 + s ξ), ξ the carriage's offset from mid-stroke in half strokes
+            xi = (position - c[t + FX_UJOINT_STROKE_MID]) / c[t + FX_UJOINT_STROKE_HALF]
+            scale = scale * max(1.0 + th[p_uj1 + 2] * xi, 0.0)
+        g_u = _ujoint_factor(cos_angle, scale, inv_cos_beta)
         omega_u = g_u * omega_tp
     if flags is not None and flags & ANY_LOAD_FRICTION:
         if flags & LOAD_FRICTION:
@@ -418,7 +454,7 @@ def carriage_speeds(flags, x, th, c, t, omega_u1, omega_u2, slope1, slope2, dx):
 
 @njit(cache=True, inline="always", error_model="numpy")
 def stations(flags, x, th, c, t, omega_tp1, omega_tp2, terms, contact, p_loss1, p_loss2, r_scg, inv_cos_b1,
-             inv_cos_b2, r, dx):
+             inv_cos_b2, r, position1, position2, dx):
     """Both stations (:func:`station`) and the carriages' speeds (:func:`carriage_speeds`):
     returns M_UER1, M_UER2, the two carriages' speeds in screw radians and the stations'
     outputs for :func:`station_outputs`.
@@ -426,7 +462,8 @@ def stations(flags, x, th, c, t, omega_tp1, omega_tp2, terms, contact, p_loss1, 
     ``terms`` is the result of :func:`station_terms` for the shafts at ``omega_tp1`` and
     ``omega_tp2``, ``contact`` that of :func:`nut_contact`; station k's losses B_TS, C_TS, B_U,
     C_U sit in that order at ``th[p_lossk:p_lossk + 4]``, its U-joint's 1/cos β is
-    ``inv_cos_bk``; ``r_scg`` and ``r`` are the screws' constants of :func:`station`. Inlined
+    ``inv_cos_bk``, its carriage at ``positionk``; ``r_scg`` and ``r`` are the screws' constants of
+    :func:`station`. Inlined
     at numba IR level like :func:`transmit`: it only calls hooks, so it has no effect branch of
     its own for numba to translate again at each call site.
     """
@@ -434,10 +471,10 @@ def stations(flags, x, th, c, t, omega_tp1, omega_tp2, terms, contact, p_loss1, 
     f_er1, f_er2, slope1, slope2 = contact
     omega_u1, m_er1, m_tser1, m_uer1 = station(flags, th, c, t, 1, omega_tp1, sign_tp1, cos1, f_tp1, f_er1,
                                                th[p_loss1], th[p_loss1 + 1], th[p_loss1 + 2], th[p_loss1 + 3],
-                                               r_scg, inv_cos_b1, r)
+                                               r_scg, inv_cos_b1, r, position1)
     omega_u2, m_er2, m_tser2, m_uer2 = station(flags, th, c, t, 2, omega_tp2, sign_tp2, cos2, f_tp2, f_er2,
                                                th[p_loss2], th[p_loss2 + 1], th[p_loss2 + 2], th[p_loss2 + 3],
-                                               r_scg, inv_cos_b2, r)
+                                               r_scg, inv_cos_b2, r, position2)
     carriage1, carriage2 = carriage_speeds(flags, x, th, c, t, omega_u1, omega_u2, slope1, slope2, dx)
     return m_uer1, m_uer2, carriage1, carriage2, (omega_u1, omega_u2, m_er1, m_er2, m_tser1, m_tser2, m_uer1, m_uer2)
 
@@ -459,7 +496,8 @@ def station_outputs(y, i, values):
 @hook
 def motor_torque(flags, th, c, t, theta_m, k_n, torque):
     """The motor torque ``torque`` with the ripple torques (torque_ripple: k_n A sin(n_p θ + φ);
-    torque_ripple_harmonics: k_n A (sin(n θ + φ1) + h2 sin(2 n θ + φ2) + h3 sin(3 n θ + φ3)))."""
+    torque_ripple_harmonics: k_n A (sin(n θ + φ1) + h2 sin(2 n θ + φ2) + h3 sin(3 n θ + φ3));
+    torque_ripple_loaded: (k_n A + r M) sin(n_p θ + φ), M = ``torque``)."""
     if flags is not None and flags & ANY_RIPPLE:
         m_ripple = 0.0
         if flags & RIPPLE:
@@ -470,5 +508,9 @@ def motor_torque(flags, th, c, t, theta_m, k_n, torque):
             angle = c[t + FX_HARMONICS_PERIODS] * theta_m
             m_ripple = m_ripple + k_n * th[p] * (math.sin(angle + th[p + 1]) + th[p + 2] * math.sin(2.0 * angle + th[p + 3])
                                                  + th[p + 4] * math.sin(3.0 * angle + th[p + 5]))
+        if flags & RIPPLE_LOADED:
+            p = int(c[t + FX_RIPPLE_LOADED])
+            m_ripple = m_ripple + ((k_n * th[p] + th[p + 2] * torque)
+                                   * math.sin(c[t + FX_RIPPLE_LOADED_PERIODS] * theta_m + th[p + 1]))
         return torque + m_ripple
     return torque

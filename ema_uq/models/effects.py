@@ -172,7 +172,9 @@ class Effect:
     relaxation, a forcing at motor-angle order); a model with it runs at the concept's fine
     ``integration_step`` even where the contract's coarser converged step is asked for
     (:attr:`ema_uq.models.base.Model.rk4_step`), since that step was verified on the nominal
-    dynamics only.
+    dynamics only. ``nests``: forms of the same family this form contains exactly at a value of its
+    extra parameters (e.g. ``stribeck_directional`` at zero asymmetry is ``stribeck`` bit for bit):
+    a diagnosis that offers a form can leave out the forms it nests.
     """
 
     name: str
@@ -189,6 +191,7 @@ class Effect:
     family: str = ""
     combines: tuple[str, ...] = ()
     fast_dynamics: bool = False
+    nests: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if not self.family:  # a form of its own: the family is the effect itself
@@ -484,7 +487,7 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (
         off={"stribeck_directional_ratio": 0.0, "stribeck_directional_asymmetry": 0.0,
              "stribeck_directional_speed": 1.0},
         signature=("low_speed", "reversal", "direction"), magnitude="stribeck_directional_ratio",
-        family="stribeck"),
+        family="stribeck", nests=("stribeck",)),
     Effect(
         "load_friction_directional",
         "ball-screw Coulomb friction growing with the carried load, more against a load that opposes the "
@@ -495,7 +498,7 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (
         start={"load_friction_directional_mu": 2.5e-4, "load_friction_directional_asymmetry": 0.0},
         off={"load_friction_directional_mu": 0.0, "load_friction_directional_asymmetry": 0.0},
         signature=("high_load", "direction"), magnitude="load_friction_directional_mu",
-        family="load_dependent_friction"),
+        family="load_dependent_friction", nests=("load_dependent_friction",)),
     Effect(
         "sensor_delay_dispersed",
         "every measured channel lags the true signal by τ in all: a pure delay (1 - d) τ and a first-order "
@@ -506,12 +509,70 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (
         start={"sensor_delay_dispersed_tau": 0.001, "sensor_delay_dispersed_dispersion": 0.5},
         off={"sensor_delay_dispersed_tau": 0.0, "sensor_delay_dispersed_dispersion": 0.5},
         signature=("delay", "high_acceleration"), magnitude="sensor_delay_dispersed_tau",
-        postprocess=delay_dispersed_outputs, family="sensor_delay"),
+        postprocess=delay_dispersed_outputs, family="sensor_delay", nests=("sensor_delay",)),
+    # forms whose magnitude follows the operating point it physically depends on (method version 5
+    # of the gap diagnosis; each nests the family's first form)
+    Effect(
+        "torque_ripple_loaded",
+        "motor torque ripple with a share of fixed amplitude (cogging) and a share proportional to the "
+        "motor torque (the current acting on the flux harmonics): (k_n A + r M) sin(n_p θ + φ)",
+        (_p("torque_ripple_loaded_amplitude", "A", 0.5, 0.0, 100.0,
+            "fixed share's amplitude as an equivalent armature current (torque k_n A)"),
+         _p("torque_ripple_loaded_phase", "rad", 0.0, -TWO_PI, TWO_PI, "ripple phase at θ = 0"),
+         _p("torque_ripple_loaded_share", "1", 0.02, 0.0, 1.0,
+            "r: ripple amplitude per unit of the motor's electromagnetic torque M")),
+        start={"torque_ripple_loaded_amplitude": 0.05, "torque_ripple_loaded_phase": 0.0,
+               "torque_ripple_loaded_share": 0.005},
+        off={"torque_ripple_loaded_amplitude": 0.0, "torque_ripple_loaded_phase": 0.0,
+             "torque_ripple_loaded_share": 0.0},
+        signature=("periodic", "low_speed", "high_load"), magnitude="torque_ripple_loaded_amplitude",
+        constants={"htls": {"periods": 6.0}, "lths": {"periods": 4.0}},  # ripple periods per motor revolution
+        family="torque_ripple", fast_dynamics=True, nests=("torque_ripple",)),
+    Effect(
+        "ujoint_stroke",
+        "exact U-joint speed factor of eq. 8 with a ripple scale that changes along the stroke (a joint "
+        "whose bend angle follows the flap, and so the carriage): a (1 + s ξ_k), ξ_k = (y_k - y_mid) / y_half",
+        (_p("ujoint_stroke_scale", "1", 6.0, 0.0, 100.0, "ripple scale a at mid-stroke (1 = the design angles)"),
+         _p("ujoint_stroke_phase", "rad", 0.0, -TWO_PI, TWO_PI, "yoke phase of the U-joints at θ = 0"),
+         _p("ujoint_stroke_slope", "1", 0.0, -1.0, 1.0,
+            "s: relative change of the scale from mid-stroke to either end (the scale stays >= 0)")),
+        start={"ujoint_stroke_scale": 0.1, "ujoint_stroke_phase": 0.0, "ujoint_stroke_slope": 0.0},
+        off={"ujoint_stroke_scale": 0.0, "ujoint_stroke_phase": 0.0, "ujoint_stroke_slope": 0.0},
+        signature=("periodic", "high_load"), magnitude="ujoint_stroke_scale",
+        # the carriage travel of the reference runs' 0-35° deflections: 0 to 0.26 m on both concepts [m]
+        constants={"htls": {"mid": 0.13, "half": 0.13}, "lths": {"mid": 0.13, "half": 0.13}},
+        family="ujoint_kinematics", nests=("ujoint_kinematics",)),
+    Effect(
+        "shaft_compliance_loaded",
+        "torsional spring and damper between motor and drive train whose stiffness grows with the torque "
+        "it carries (gear teeth and bearings stiffen under contact load): k = k_0 (1 + h |M| / M_ref)",
+        (_p("shaft_compliance_loaded_period", "s", 0.03, 0.0, 1.0,
+            "period 2π/ω_n of the torsional mode unloaded (stiffness k_0 = J_red ω_n², rigid at 0)"),
+         _p("shaft_compliance_loaded_zeta", "1", 0.05, 1e-3, 5.0, "damping ratio of the unloaded torsional mode"),
+         _p("shaft_compliance_loaded_load_fraction", "1", 0.5, 0.05, 0.95,
+            "load-side share of the inertia J (the rest turns with the motor)"),
+         _p("shaft_compliance_loaded_hardening", "1", 0.0, 0.0, 3.0,
+            "h: relative stiffness gain at the reference torque M_ref")),
+        start={"shaft_compliance_loaded_period": 0.0044, "shaft_compliance_loaded_zeta": 0.05,
+               "shaft_compliance_loaded_load_fraction": 0.5, "shaft_compliance_loaded_hardening": 0.0},
+        off={"shaft_compliance_loaded_period": 0.0, "shaft_compliance_loaded_zeta": 0.05,
+             "shaft_compliance_loaded_load_fraction": 0.5, "shaft_compliance_loaded_hardening": 0.0},
+        signature=("high_acceleration", "reversal", "periodic", "high_load"),
+        magnitude="shaft_compliance_loaded_period",
+        extra_states={"htls": ("shaft_twist", "shaft_twist_rate"), "lths": ("shaft_twist", "shaft_twist_rate")},
+        state_scales={"shaft_twist": 0.01, "shaft_twist_rate": 1.0},  # [rad], [rad/s]
+        # as shaft_compliance, and M_ref [N m]: about the largest torque the coupling carries on the
+        # reference runs (HT/LS 36 N m, LT/HS 2.3 N m at the motor)
+        constants={"htls": {"mode_omega_max": 1.0 / 5e-4, "torque_ref": 30.0},
+                   "lths": {"mode_omega_max": 1.0 / 2e-4, "torque_ref": 2.0}},
+        family="shaft_compliance", fast_dynamics=True, nests=("shaft_compliance",)),
 )}
 
-#: Effects that cannot share one model: both model the same coupling (its twist states, or its joints).
-EXCLUSIVE: tuple[frozenset[str], ...] = (frozenset({"shaft_compliance", "backlash_compliant"}),
-                                          frozenset({"ujoint_kinematics", "ujoint_stations"}))
+#: Effects that cannot share one model: each group models the same coupling (its twist states), or
+#: the same joints.
+EXCLUSIVE: tuple[frozenset[str], ...] = (
+    frozenset({"shaft_compliance", "backlash_compliant", "shaft_compliance_loaded"}),
+    frozenset({"ujoint_kinematics", "ujoint_stations", "ujoint_stroke"}))
 
 #: Kernel order of the catalogue effects (the layout table of the augmented kernels).
 EFFECT_ORDER: tuple[str, ...] = tuple(CATALOGUE)
@@ -587,9 +648,10 @@ def augment_ema(model: "Model", names: tuple[str, ...], values: dict[str, float]
     ``names`` are catalogue effects (checked by ``Model.with_effects``); ``values`` override
     effect nominal values (full names). The kernel reads the layout from the derived constants.
     """
-    for pair in EXCLUSIVE:
-        if pair <= set(names):
-            raise EffectError(f"effects {' and '.join(sorted(pair))} model the same coupling; switch in one of them")
+    for group in EXCLUSIVE:
+        both = sorted(group & set(names))
+        if len(both) > 1:
+            raise EffectError(f"effects {' and '.join(both)} model the same coupling; switch in one of them")
     kernel_id = KERNEL_IDS.get(model.name, (None, None))[1]
     if kernel_id is None:
         raise EffectError(f"concept {model.name} has no compiled kernel with effects; give it one in "

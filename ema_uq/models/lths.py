@@ -137,7 +137,7 @@ def evaluate(x, u, th, c, dx, y, outputs=True, flags=None):
     # ball screws and U-joints (eqs. 27-29, as in HT/LS): their loads on the bevel gears, the carriages' speeds
     m_uer1, m_uer2, carriage1, carriage2, stations = ek.stations(
         flags, x, th, c, t, omega_tp1, omega_tp2, terms, contact, P_B_TS1, P_B_TS2, c[D_R_SCG], c[D_INV_COS_B1],
-        c[D_INV_COS_B2], c[C_R], dx)
+        c[D_INV_COS_B2], c[C_R], x[X_Y1], x[X_Y2], dx)
     m_mg2 = m_uer2 / i_tp2 + th[P_B_TP2] * omega_tp2 + ek.coulomb(flags, th[P_C_TP2], f_tp2) * sign_tp2 + m_b22
     m_tper = ek.transmit(flags, e, m_uer1 / i_bg1 + m_mg2 / i_bg2 + th[P_B_TP1] * omega_tp1
                          + ek.coulomb(flags, th[P_C_TP1], f_tp1) * sign_tp1 + m_b2)

@@ -22,8 +22,8 @@ from numba import njit
 from ema_uq import ParameterError, deploy_retract, get_model, io, simulate_batch, synthesize
 from ema_uq.models import htls, lths
 from ema_uq.models.effect_kernels import effect_flags
-from ema_uq.models.effects import (CATALOGUE, Effect, EffectError, SIGNATURES, delay_outputs, first_order_lag,
-                                   parse_effect)
+from ema_uq.models.effects import (CATALOGUE, EXCLUSIVE, Effect, EffectError, SIGNATURES, delay_outputs,
+                                   first_order_lag, parse_effect)
 from ema_uq.params import Parameter
 
 DEG = math.pi / 180.0
@@ -38,12 +38,15 @@ MAGNITUDE = {"backlash": "backlash_delta", "stribeck": "stribeck_ratio", "shaft_
              "torque_ripple_harmonics": "torque_ripple_harmonics_amplitude",
              "ujoint_stations": "ujoint_stations_scale1", "stribeck_directional": "stribeck_directional_ratio",
              "load_friction_directional": "load_friction_directional_mu",
-             "sensor_delay_dispersed": "sensor_delay_dispersed_tau"}
+             "sensor_delay_dispersed": "sensor_delay_dispersed_tau",
+             "torque_ripple_loaded": "torque_ripple_loaded_amplitude", "ujoint_stroke": "ujoint_stroke_scale",
+             "shaft_compliance_loaded": "shaft_compliance_loaded_period"}
 #: further forms of the spec effects' families (the catalogue after the seven), form -> family
 FAMILY_FORMS = {"backlash_compliant": "backlash", "backlash_output": "backlash",
                 "torque_ripple_harmonics": "torque_ripple", "ujoint_stations": "ujoint_kinematics",
                 "stribeck_directional": "stribeck", "load_friction_directional": "load_dependent_friction",
-                "sensor_delay_dispersed": "sensor_delay"}
+                "sensor_delay_dispersed": "sensor_delay", "torque_ripple_loaded": "torque_ripple",
+                "ujoint_stroke": "ujoint_kinematics", "shaft_compliance_loaded": "shaft_compliance"}
 #: the spanning forms, each with its family's first form, the values at which they coincide, and a shape
 #: only the spanning form has
 NESTED = (("stribeck", {"stribeck_ratio": 0.8, "stribeck_speed": 1.5}, "stribeck_directional",
@@ -55,7 +58,18 @@ NESTED = (("stribeck", {"stribeck_ratio": 0.8, "stribeck_speed": 1.5}, "stribeck
            {"load_friction_directional_asymmetry": -0.6}),
           ("sensor_delay", {"sensor_delay_tau": 0.0123}, "sensor_delay_dispersed",
            {"sensor_delay_dispersed_tau": 0.0123, "sensor_delay_dispersed_dispersion": 0.0},
-           {"sensor_delay_dispersed_dispersion": 0.6}))
+           {"sensor_delay_dispersed_dispersion": 0.6}),
+          ("torque_ripple", {"torque_ripple_amplitude": 0.4, "torque_ripple_phase": 0.7}, "torque_ripple_loaded",
+           {"torque_ripple_loaded_amplitude": 0.4, "torque_ripple_loaded_phase": 0.7, "torque_ripple_loaded_share": 0.0},
+           {"torque_ripple_loaded_share": 0.05}),
+          ("ujoint_kinematics", {"ujoint_kinematics_scale": 6.0, "ujoint_kinematics_phase": 0.4}, "ujoint_stroke",
+           {"ujoint_stroke_scale": 6.0, "ujoint_stroke_phase": 0.4, "ujoint_stroke_slope": 0.0},
+           {"ujoint_stroke_slope": 0.8}),
+          ("shaft_compliance", {"shaft_compliance_period": 0.02, "shaft_compliance_zeta": 0.1},
+           "shaft_compliance_loaded",
+           {"shaft_compliance_loaded_period": 0.02, "shaft_compliance_loaded_zeta": 0.1,
+            "shaft_compliance_loaded_hardening": 0.0},
+           {"shaft_compliance_loaded_hardening": 2.0}))
 NOISE = 0.02  # fraction of channel RMS, docs/MODEL_SPEC.md, "hypothetical data"
 
 
@@ -234,8 +248,10 @@ def test_effects_at_off_reproduce_nominal_bit_for_bit(concept, experiment, nomin
         aug = base.with_effects([name])
         np.testing.assert_array_equal(runs(aug, aug.parameters.vector(effect.off), experiment)[0],
                                       nominal_runs[concept], err_msg=name)
-    # every effect at once (of the exclusive pairs, one and then the other)
-    for left_out in ({"backlash_compliant", "ujoint_stations"}, {"shaft_compliance", "ujoint_kinematics"}):
+    # every effect at once (of each exclusive group, one member at a time)
+    groups = [sorted(group) for group in EXCLUSIVE]
+    for i in range(max(map(len, groups))):
+        left_out = {name for group in groups for name in group if name != group[i % len(group)]}
         everything = base.with_effects([n for n in CATALOGUE if n not in left_out])
         off = everything.parameters.vector({k: v for n, e in CATALOGUE.items() if n not in left_out
                                             for k, v in e.off.items()})
@@ -388,7 +404,67 @@ def test_a_spanning_form_is_its_family_s_first_form_at_zero_asymmetry_or_dispers
     alike = runs(spanning, spanning.parameters.nominal, experiment)
     np.testing.assert_array_equal(alike, runs(first, first.parameters.nominal, experiment))
     shaped = runs(spanning, spanning.parameters.vector({**form_values, **shape}), experiment)
-    assert np.max(np.abs(shaped - alike)) > 1e-3 * np.max(np.abs(alike))
+    # on some channel by more than a thousandth of its range (a U-joint's ripple is small beside the motor's speed)
+    assert np.max(np.max(np.abs(shaped - alike), axis=1) / np.max(np.abs(alike), axis=1)) > 1e-3
+
+
+def test_each_form_declares_the_forms_it_nests():
+    """``Effect.nests`` (what a diagnosis may leave out beside a form) is what the test above shows."""
+    declared = {(parent, form) for form, effect in CATALOGUE.items() for parent in effect.nests}
+    assert declared == {(parent, form) for parent, _, form, _, _ in NESTED}
+    for parent, form in declared:
+        assert CATALOGUE[parent].family == CATALOGUE[form].family
+
+
+def test_loaded_ripple_stroke_ujoint_and_stiffening_formulas():
+    """torque_ripple_loaded (k_n A + r M) sin(n θ + φ); ujoint_stroke's scale a (1 + s ξ) per
+    carriage; shaft_compliance_loaded's spring k_0 (1 + h |M| / M_ref), held under the step's limit."""
+    amplitude, phase, share, slope, hardening = 0.3, 0.5, 0.04, 0.6, 1.5
+    aug, x, u = _htls_state_and_constants(["torque_ripple_loaded", "ujoint_stroke"], {
+        "torque_ripple_loaded_amplitude": amplitude, "torque_ripple_loaded_phase": phase,
+        "torque_ripple_loaded_share": share, "ujoint_stroke_scale": 6.0, "ujoint_stroke_slope": slope})
+    plain, _, _ = _htls_state_and_constants([], {})
+    x[1], x[2] = 0.05, 0.21  # the carriages on either side of mid-stroke (0.13 m)
+    th, c = aug.parameters.nominal, aug.kernel_constants()
+    dx, y = np.empty(aug.n_states), np.empty(aug.n_outputs)
+    evaluate_effects(aug, x, u, th, c, dx, y)
+    out = dict(zip(aug.outputs, y))
+    for k, beta in ((1, 3 * DEG), (2, 5 * DEG)):
+        g = math.cos(beta) / (1 - math.sin(beta) ** 2 * math.cos(x[3] / 2) ** 2)
+        scale = 6.0 * (1 + slope * (x[k] - 0.13) / 0.13)
+        assert out[f"Omega_U{k}"] == pytest.approx((1 + scale * (g - 1)) * out[f"Omega_TP{k}"], rel=1e-13)
+    # the ripple: the motor's net torque differs from the same state without the ripple by exactly it
+    k_n, j = th[aug.parameters.index("k_n")], th[aug.parameters.index("J")]
+    no_ripple = th.copy()
+    no_ripple[aug.parameters.index("torque_ripple_loaded_amplitude")] = 0.0
+    no_ripple[aug.parameters.index("torque_ripple_loaded_share")] = 0.0
+    dx0 = np.empty(aug.n_states)
+    evaluate_effects(aug, x, u, no_ripple, c, dx0, np.empty(aug.n_outputs))
+    m_n = out["I_A"] * k_n
+    ripple = (k_n * amplitude + share * m_n) * math.sin(6.0 * x[3] + phase)
+    assert (dx[0] - dx0[0]) * j == pytest.approx(ripple, rel=1e-9)
+    # the stiffening: the spring's ω² read from the twist's acceleration at two twists (the load
+    # torque does not depend on the twist at rest), unloaded and stiffened by 1 + h |M| / M_ref
+    aug = get_model("htls").with_effects(["shaft_compliance_loaded"], {
+        "shaft_compliance_loaded_period": 0.02, "shaft_compliance_loaded_hardening": hardening})
+    th, c = aug.parameters.nominal, aug.kernel_constants()
+    i_q = aug.states.index("shaft_twist")
+    omega_squared, load = [], 0.0
+    for h in (0.0, hardening):
+        th[aug.parameters.index("shaft_compliance_loaded_hardening")] = h
+        rates = []
+        for q in (0.0, 1e-4):
+            x = np.zeros(aug.n_states)
+            x[i_q] = q
+            dx, y = np.empty(aug.n_states), np.empty(aug.n_outputs)
+            evaluate_effects(aug, x, np.array([0.3, -12000.0, -9500.0, 0.0]), th, c, dx, y)
+            rates.append(dx[i_q + 1])
+            out = dict(zip(aug.outputs, y))
+            load = out["M_TPER1"] + out["M_TPER2"]
+        omega_squared.append((rates[0] - rates[1]) / 1e-4)
+    assert omega_squared[0] == pytest.approx((2 * math.pi / 0.02) ** 2, rel=1e-6)
+    assert omega_squared[1] == pytest.approx(omega_squared[0] * (1 + hardening * abs(load) / 30.0), rel=1e-6)
+    assert abs(load) > 1.0  # the test has a load to stiffen with
 
 
 def test_directional_stribeck_and_load_friction_formulas():
@@ -567,7 +643,9 @@ def test_shaft_mode_matches_an_independent_two_inertia_model(concept):
 
 @pytest.mark.parametrize("concept", ["htls", "lths"])
 def test_batched_equals_single(concept, experiment):
-    names = [n for n in CATALOGUE if n not in ("backlash_compliant", "ujoint_stations")]  # each of EXCLUSIVE once
+    # one member of each exclusive group
+    names = [n for n in CATALOGUE if n not in ("backlash_compliant", "ujoint_stations", "shaft_compliance_loaded",
+                                               "ujoint_stroke")]
     aug = get_model(concept).with_effects(names)
     nominal = aug.parameters.nominal
     thetas = np.stack([nominal, aug.parameters.vector({"backlash_delta": 0.01, "sensor_delay_tau": 0.013,
