@@ -162,15 +162,17 @@ def _frozen_method(settings: DiagnosisSettings | None = None) -> dict:
         strategy = strategy_for(get_model(concept))
         strategies[concept] = {"name": strategy.name, "thresholds": plain(strategy.thresholds),
                                # the concept's knobs under the frozen method's switches (what a block runs)
-                               "settings": plain(dataclasses.replace(strategy.settings,
-                                                                     spanning_forms=settings.spanning_forms)),
+                               "settings": plain(dataclasses.replace(
+                                   strategy.settings, spanning_forms=settings.spanning_forms,
+                                   operating_point_forms=settings.operating_point_forms,
+                                   nested_forms=settings.nested_forms)),
                                "start_multiples": [float(m) for m in strategy.start_multiples],
                                "where_source": strategy.where_source,
                                "metric": type(strategy.metric).__name__,
                                "z_significant": getattr(strategy.metric, "z_significant", None),
                                "structure": plain(strategy.structure),
                                "model_form": _allowance_record(strategy, concept)}
-    return {"catalogue": {c: catalogue_families(c, settings.spanning_forms) for c in PROTOCOL_SELFCHECK["concepts"]},
+    return {"catalogue": {c: catalogue_families(c, settings) for c in PROTOCOL_SELFCHECK["concepts"]},
             "thresholds": plain(Thresholds()), "settings": plain(settings),
             "constants": {"Z_HELD_OUT": attribute.Z_HELD_OUT, "PROFILE_POINTS": attribute.PROFILE_POINTS,
                           "SHRINK_BLOCKS": attribute.SHRINK_BLOCKS, "SHRINK_REPLICATES": attribute.SHRINK_REPLICATES,
@@ -361,15 +363,19 @@ METHOD_VERSIONS = {1: "the nominal model's kinematics and command taken as exact
                    2: "the model-form allowance (kinematic tolerance, command lag) fitted in every model",
                    3: "2 at the model contract's converged step where no effect brings faster dynamics "
                       "(tried, not adopted)",
-                   4: "2 with the spanning forms: friction per direction, a sensor delay with its filter"}
+                   4: "2 with the spanning forms: friction per direction, a sensor delay with its filter",
+                   5: "4 with the operating-point forms (a ripple share with the motor torque, a joint angle along "
+                      "the stroke, a stiffness with the torque carried), the nesting forms only, at the model "
+                      "contract's converged step where no effect brings faster dynamics"}
 
 
 def method_settings(version: int) -> DiagnosisSettings:
     """The diagnosis settings of method ``version`` (:data:`METHOD_VERSIONS`)."""
     if version not in METHOD_VERSIONS:
         raise SystemExit(f"no method version {version}; choose from {', '.join(map(str, METHOD_VERSIONS))}")
-    return DiagnosisSettings(model_form_allowance=version >= 2, converged_step=version == 3,
-                             spanning_forms=version >= 4)
+    return DiagnosisSettings(model_form_allowance=version >= 2, converged_step=version in (3, 5),
+                             spanning_forms=version >= 4, operating_point_forms=version >= 5,
+                             nested_forms=version < 5)
 
 
 def run_block(protocol: dict, block: str, out_dir: Path, jobs: int = 1, chunk: str | None = None,

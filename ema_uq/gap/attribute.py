@@ -150,7 +150,8 @@ import numpy as np
 from ..experiments import Measurement
 from ..models import get_model
 from .allowance import allowance_values
-from .candidates import SPANNING_FORMS, _after_model, _catalogue, _family, _fit_nominal, _forward_selection
+from .candidates import (OPERATING_POINT_FORMS, SPANNING_FORMS, _after_model, _catalogue, _family, _fit_nominal,
+                         _forward_selection)
 from .diagnosis_state import _Diagnosis
 from .fitting import _effect_parameter_names, _parameter_table
 from .holdout import GapError, _check_inputs, _split
@@ -317,7 +318,7 @@ def diagnose(
     settings = strategy.settings if settings is None else settings
     # the converged-step option: the model contract's step; augmented models inherit the flag
     base = replace(base, at_converged_step=bool(settings.converged_step and base.converged_step))
-    catalogue = _catalogue(base, settings.spanning_forms)
+    catalogue = _catalogue(base, settings)
     if candidates is not None:
         compound = [c for c in candidates if getattr(base.effect_catalogue.get(c), "combines", ())]
         if compound:
@@ -325,10 +326,16 @@ def diagnose(
                            f"({', '.join(f for c in compound for f in base.effect_catalogue[c].combines)}) and are no "
                            "candidates; give single mechanisms (forward selection combines them: max_effects)")
         unknown = [c for c in candidates if c not in catalogue]
-        spanning = [c for c in unknown if c in SPANNING_FORMS and c in base.effect_catalogue]
-        if spanning:
-            raise GapError(f"candidate(s) {', '.join(spanning)} are offered from method version 4 on; set "
-                           "DiagnosisSettings(spanning_forms=True) or leave them out")
+        for forms, version, option in ((SPANNING_FORMS, 4, "spanning_forms"),
+                                       (OPERATING_POINT_FORMS, 5, "operating_point_forms")):
+            later = [c for c in unknown if c in forms and c in base.effect_catalogue]
+            if later:
+                raise GapError(f"candidate(s) {', '.join(later)} are offered from method version {version} on; set "
+                               f"DiagnosisSettings({option}=True) or leave them out")
+        nested = [c for c in unknown if c in base.effect_catalogue]
+        if nested:
+            raise GapError(f"candidate(s) {', '.join(nested)} are nested in other offered forms and left out "
+                           "(DiagnosisSettings(nested_forms=False)); set nested_forms=True or leave them out")
         if unknown:
             raise GapError(f"unknown candidate effect(s) {', '.join(unknown)} for concept {concept}; "
                            f"choose from {', '.join(catalogue)}")

@@ -42,14 +42,36 @@ DIVERGED_RELATIVE = 1e6
 #: of the power flow, a sensor delay with its filter), each nesting the family's first form; offered
 #: from method version 4 on (``DiagnosisSettings.spanning_forms``)
 SPANNING_FORMS = ("stribeck_directional", "load_friction_directional", "sensor_delay_dispersed")
+#: forms whose magnitude follows the operating point it physically depends on (a ripple share that
+#: follows the motor torque, a joint angle that changes along the stroke, a drive stiffness that
+#: grows with the torque it carries), each nesting the family's first form; offered from method
+#: version 5 on (``DiagnosisSettings.operating_point_forms``)
+OPERATING_POINT_FORMS = ("torque_ripple_loaded", "ujoint_stroke", "shaft_compliance_loaded")
 
 
-def _catalogue(model, spanning_forms: bool = False) -> dict[str, Any]:
-    """The concept's candidate effects, name -> Effect (``Model.effect_catalogue``), less the
-    compounds that carry another family's mechanism (``Effect.combines``): a candidate is one
-    mechanism. The :data:`SPANNING_FORMS` only with ``spanning_forms``."""
-    catalogue = {name: effect for name, effect in (getattr(model, "effect_catalogue", None) or {}).items()
-                 if not getattr(effect, "combines", ()) and (spanning_forms or name not in SPANNING_FORMS)}
+def offered_forms(effect_catalogue, settings=None) -> dict[str, Any]:
+    """The candidate forms, name -> Effect, that ``settings`` (a :class:`DiagnosisSettings`;
+    None: its defaults) offers out of a concept's ``effect_catalogue``: no compound that carries
+    another family's mechanism (``Effect.combines``: a candidate is one mechanism); the
+    :data:`SPANNING_FORMS` only with ``spanning_forms``, the :data:`OPERATING_POINT_FORMS` only
+    with ``operating_point_forms``; without ``nested_forms``, no form that another offered form
+    contains (``Effect.nests``: it adds nothing the nesting form cannot fit, and costs a refit)."""
+    spanning = bool(getattr(settings, "spanning_forms", False))
+    operating_point = bool(getattr(settings, "operating_point_forms", False))
+    offered = {name: effect for name, effect in (effect_catalogue or {}).items()
+               if not getattr(effect, "combines", ())
+               and (spanning or name not in SPANNING_FORMS)
+               and (operating_point or name not in OPERATING_POINT_FORMS)}
+    if not getattr(settings, "nested_forms", True):
+        nested = {inner for effect in offered.values() for inner in getattr(effect, "nests", ())}
+        offered = {name: effect for name, effect in offered.items() if name not in nested}
+    return offered
+
+
+def _catalogue(model, settings=None) -> dict[str, Any]:
+    """The concept's candidate effects under ``settings`` (:func:`offered_forms` of
+    ``Model.effect_catalogue``)."""
+    catalogue = offered_forms(getattr(model, "effect_catalogue", None), settings)
     if not catalogue or not hasattr(model, "with_effects"):
         raise GapError(f"concept {model.name} has no catalogue of unmodelled effects; the gap diagnosis needs one")
     return catalogue

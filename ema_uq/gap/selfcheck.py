@@ -104,7 +104,7 @@ import numpy as np
 from ..models import get_model
 from ..threads import single_threaded_worker
 from .attribute import diagnose
-from .candidates import SPANNING_FORMS
+from .candidates import offered_forms
 from .strategy import DiagnosisSettings
 from ..errors import EmaUqError
 from .selfcheck_scores import Case, CaseOutcome, SelfCheckResult, _num
@@ -152,31 +152,29 @@ def case_seed(seed: int, concept: str, sensors: str, slot: int) -> int:
     return int(state.generate_state(1)[0])
 
 
-def catalogue_families(concept: str, spanning_forms: bool = False) -> dict[str, list[str]]:
-    """{family: [effect forms]} of the concept's candidate effects (``Effect.family``, else the
-    effect's name; compounds of several mechanisms, ``Effect.combines``, are no candidates; the
-    :data:`~ema_uq.gap.candidates.SPANNING_FORMS` only with ``spanning_forms``)."""
+def catalogue_families(concept: str, settings: DiagnosisSettings | None = None) -> dict[str, list[str]]:
+    """{family: [effect forms]} of the candidate effects ``settings`` offers for the concept
+    (:func:`~ema_uq.gap.candidates.offered_forms`; None: method version 2's catalogue)."""
     out: dict[str, list[str]] = {}
-    for name, effect in get_model(concept).effect_catalogue.items():
-        if getattr(effect, "combines", ()) or (name in SPANNING_FORMS and not spanning_forms):
-            continue
+    for name, effect in offered_forms(get_model(concept).effect_catalogue, settings).items():
         out.setdefault(getattr(effect, "family", None) or name, []).append(name)
     return out
 
 
-def catalogue_without(concept: str, family: str, spanning_forms: bool = False) -> tuple[str, ...]:
-    """Every form of the concept's catalogue but those of ``family``."""
-    return tuple(name for fam, forms in catalogue_families(concept, spanning_forms).items() if fam != family
+def catalogue_without(concept: str, family: str, settings: DiagnosisSettings | None = None) -> tuple[str, ...]:
+    """Every form ``settings`` offers for the concept but those of ``family``."""
+    return tuple(name for fam, forms in catalogue_families(concept, settings).items() if fam != family
                  for name in forms)
 
 
 def under_catalogue(case: Case, settings: DiagnosisSettings | None) -> Case:
     """The case as the catalogue of ``settings`` poses it: a left-out case is built with every form
-    of the other families that method version 2 offers, and gets the spanning forms of those
-    families too when ``settings.spanning_forms`` is on."""
-    if case.kind != "left_out" or settings is None or not settings.spanning_forms:
+    of the other families that method version 2 offers, and gets instead those ``settings`` offers
+    (method version 4's spanning forms beside them, version 5's nesting forms in their place)."""
+    if case.kind != "left_out" or settings is None:
         return case
-    return replace(case, candidates=catalogue_without(case.concept, case.family, spanning_forms=True))
+    candidates = catalogue_without(case.concept, case.family, settings)
+    return case if candidates == tuple(case.candidates) else replace(case, candidates=candidates)
 
 
 def _case(seed: int, concept: str, sensors: str, variant: str | None, none_index: int = 0,

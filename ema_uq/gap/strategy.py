@@ -50,7 +50,12 @@ class DiagnosisSettings:
     faster dynamics (``Model.rk4_step``);
     ``spanning_forms``: offer the catalogue's forms that give a family the freedom its mechanism
     has (:data:`ema_uq.gap.candidates.SPANNING_FORMS`: friction per direction, a sensor delay
-    with its filter; method version 4) beside the families' other forms.
+    with its filter; method version 4) beside the families' other forms;
+    ``operating_point_forms``: offer the forms whose magnitude follows the operating point
+    (:data:`ema_uq.gap.candidates.OPERATING_POINT_FORMS`: a ripple share with the motor torque, a
+    joint angle along the stroke, a stiffness with the torque carried; method version 5);
+    ``nested_forms``: offer a form that another offered form nests (``Effect.nests``; method
+    version 5 offers the nesting forms only: the same mechanisms, fewer refits).
     """
 
     holdout_fraction: float = 0.3
@@ -64,14 +69,17 @@ class DiagnosisSettings:
     model_form_allowance: bool = True
     converged_step: bool = False
     spanning_forms: bool = False
+    operating_point_forms: bool = False
+    nested_forms: bool = True
 
     def __post_init__(self) -> None:
         if not isinstance(self.model_form_allowance, (bool, np.bool_)):
             raise AllowanceError(f"model_form_allowance must be true or false, got {self.model_form_allowance!r}")
         if not isinstance(self.converged_step, (bool, np.bool_)):
             raise ValueError(f"converged_step must be true or false, got {self.converged_step!r}")
-        if not isinstance(self.spanning_forms, (bool, np.bool_)):
-            raise ValueError(f"spanning_forms must be true or false, got {self.spanning_forms!r}")
+        for option in ("spanning_forms", "operating_point_forms", "nested_forms"):
+            if not isinstance(getattr(self, option), (bool, np.bool_)):
+                raise ValueError(f"{option} must be true or false, got {getattr(self, option)!r}")
 
 
 class GapMetric(Protocol):

@@ -251,8 +251,8 @@ def test_the_spanning_forms_are_offered_from_method_version_4_only():
 
     model = get_model("lths")
     assert not set(SPANNING_FORMS) & set(_catalogue(model))
-    assert set(SPANNING_FORMS) <= set(_catalogue(model, spanning_forms=True))
-    families = catalogue_families("lths", spanning_forms=True)
+    assert set(SPANNING_FORMS) <= set(_catalogue(model, DiagnosisSettings(spanning_forms=True)))
+    families = catalogue_families("lths", DiagnosisSettings(spanning_forms=True))
     assert families["stribeck"] == ["stribeck", "stribeck_directional"]
     assert families["sensor_delay"] == ["sensor_delay", "sensor_delay_dispersed"]
     assert catalogue_families("lths")["stribeck"] == ["stribeck"]
@@ -265,3 +265,36 @@ def test_the_spanning_forms_are_offered_from_method_version_4_only():
     data = synthesize("lths", deploy_retract().slice(0, 200), noise=0.02, seed=1)
     with pytest.raises(GapError, match="method version 4 on; set DiagnosisSettings"):
         diagnose([data], candidates=["stribeck_directional"])
+
+
+def test_version_5_offers_each_family_by_the_forms_that_nest_the_others():
+    """Method version 5: the operating-point forms, and no form another offered form nests (the
+    nesting form fits everything the nested one does, so offering both costs a refit for nothing)."""
+    from ema_uq import synthesize
+    from ema_uq.experiments import deploy_retract
+    from ema_uq.gap import DiagnosisSettings, GapError, diagnose
+    from ema_uq.gap.candidates import OPERATING_POINT_FORMS, offered_forms
+    from ema_uq.gap.selfcheck import build_cases, catalogue_families, under_catalogue
+
+    v5 = DiagnosisSettings(spanning_forms=True, operating_point_forms=True, nested_forms=False)
+    assert not set(OPERATING_POINT_FORMS) & set(offered_forms(get_model("htls").effect_catalogue,
+                                                              DiagnosisSettings(spanning_forms=True)))
+    families = catalogue_families("htls", v5)
+    assert families == {"backlash": ["backlash", "backlash_output"], "stribeck": ["stribeck_directional"],
+                        "shaft_compliance": ["shaft_compliance_loaded"],
+                        "ujoint_kinematics": ["ujoint_stations", "ujoint_stroke"],
+                        "load_dependent_friction": ["load_friction_directional"],
+                        "sensor_delay": ["sensor_delay_dispersed"],
+                        "torque_ripple": ["torque_ripple_harmonics", "torque_ripple_loaded"]}
+    # every form version 2 offers is offered by version 5 or nested in a form it offers
+    offered = {n for forms in families.values() for n in forms}
+    nested = {inner for n in offered for inner in get_model("htls").effect_catalogue[n].nests}
+    assert {n for forms in catalogue_families("htls").values() for n in forms} <= offered | nested
+    case = next(c for c in build_cases(["htls"], seed=11, sensors=["full"], kinds=("left_out",))
+                if c.family == "stribeck")
+    assert set(under_catalogue(case, v5).candidates) == offered - {"stribeck_directional"}
+    data = synthesize("htls", deploy_retract().slice(0, 200), noise=0.02, seed=1)
+    with pytest.raises(GapError, match="method version 5 on; set DiagnosisSettings"):
+        diagnose([data], candidates=["ujoint_stroke"], settings=DiagnosisSettings(spanning_forms=True))
+    with pytest.raises(GapError, match="nested in other offered forms"):
+        diagnose([data], candidates=["stribeck"], settings=v5)
