@@ -417,8 +417,28 @@ def test_the_third_unseen_set_has_cases_of_its_own():
     assert selfcheck.UNSEEN_SLOTS["UNSEEN_VARIANTS_3"] == (700, 800)
 
 
+def test_the_third_unseen_protocol_lists_its_cases():
+    with open(ROOT / "benchmarks" / "gap_unseen3.yaml", encoding="utf-8") as fh:
+        protocol = yaml.safe_load(fh)
+    from ema_uq.gap.variant_catalogue import UNSEEN_VARIANTS_3
+
+    assert protocol["variant_set"] == "UNSEEN_VARIANTS_3" and protocol["seeds"] == [5601, 5602]
+    assert protocol["method_protocol"] == "benchmarks/gap_protocol_v5.yaml"
+    assert protocol["results"] == "benchmarks/protocol_outcomes/method5/unseen3"
+    written = {k: v.family for k, v in UNSEEN_VARIANTS_3.items()}
+    assert {k: v["family"] for k, v in protocol["variants"].items()} == written
+    assert {k for k, v in protocol["variants"].items() if v.get("left_out_too")} == {
+        k for k, v in UNSEEN_VARIANTS_3.items() if v.family is not None}
+    for seed in protocol["seeds"]:
+        cases = selfcheck.unseen_cases(seed, protocol["concepts"], protocol["sensors"], protocol["variant_set"])
+        assert len(cases) == protocol["n_cases_per_seed"]
+        assert {c.variant for c in cases if c.kind == "left_out"} == {
+            k for k, v in protocol["variants"].items() if v.get("left_out_too")}
+
+
 @pytest.mark.parametrize("protocol_file, variant", [("gap_unseen.yaml", "stribeck_asymmetric"),
-                                                    ("gap_unseen2.yaml", "ujoint_swivel")])
+                                                    ("gap_unseen2.yaml", "ujoint_swivel"),
+                                                    ("gap_unseen3.yaml", "stribeck_dwell")])
 def test_the_unseen_protocol_describes_the_cases_it_runs(tmp_path, monkeypatch, protocol_file, variant):
     import sys
 
