@@ -11,8 +11,11 @@ each per concept and sensor set, the in-catalogue ones also with their family le
 that names ``variant_set: UNSEEN_VARIANTS_2`` (``benchmarks/gap_unseen2.yaml``) runs instead the
 second set, written for the evaluation of method version 4 (a torque ripple proportional to the
 motor torque, a U-joint angle growing with the stroke, window-averaging sensors; outside the
-catalogue a saturating torque constant, a PI speed loop and a speed feed-forward); without the key
-the set is the first.
+catalogue a saturating torque constant, a PI speed loop and a speed feed-forward), and one that
+names ``variant_set: UNSEEN_VARIANTS_3`` (``benchmarks/gap_unseen3.yaml``) the third, written for
+the evaluation of method version 5 (the play of a worn screw, a progressive coupling, breakaway
+friction that builds up at rest; outside the catalogue a binding screw, an eccentric motor angle
+sensor and a position-loop dead band); without the key the set is the first.
 
 The protocol (``benchmarks/gap_unseen.yaml``, committed before the run) fixes the seeds, the
 cases and the scoring; the run refuses unless the diagnosis sources hash to a value the method
@@ -21,7 +24,8 @@ case's outcome is kept under ``results/<sources hash>/seed<S>/`` (a rerun resume
 nothing twice); the scores go to ``<results>.json`` and are printed beside those of the method's
 evaluation block.
 
-Usage: python benchmarks/gap_unseen.py [--protocol benchmarks/gap_unseen.yaml|gap_unseen2.yaml] [--jobs N]
+Usage: python benchmarks/gap_unseen.py [--protocol benchmarks/gap_unseen.yaml|gap_unseen2.yaml|...]
+                                      [--jobs N]
        python benchmarks/gap_unseen.py --development VERSION --results DIR [--jobs N]   (a method not frozen)
 """
 from __future__ import annotations

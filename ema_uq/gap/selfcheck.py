@@ -52,9 +52,11 @@ longer name the physics in the records, so the right verdict is a flag: ``unexpl
 ``ambiguous``. Slot ``200 + i`` for the i-th variant: other records than its ``effect`` case.
 
 Variants written after method version 2 was frozen (:func:`unseen_cases`, slots ``300 + i`` and
-``400 + i`` of :data:`~ema_uq.gap.variant_catalogue.UNSEEN_VARIANTS`) and for the evaluation of
+``400 + i`` of :data:`~ema_uq.gap.variant_catalogue.UNSEEN_VARIANTS`), for the evaluation of
 method version 4 (``variant_set="UNSEEN_VARIANTS_2"``, slots ``500 + i`` and ``600 + i`` of
-:data:`~ema_uq.gap.variant_catalogue.UNSEEN_VARIANTS_2`): never in this list, so that a frozen
+:data:`~ema_uq.gap.variant_catalogue.UNSEEN_VARIANTS_2`) and for that of method version 5
+(``variant_set="UNSEEN_VARIANTS_3"``, slots ``700 + i`` and ``800 + i`` of
+:data:`~ema_uq.gap.variant_catalogue.UNSEEN_VARIANTS_3`): never in this list, so that a frozen
 method can be run once on mechanisms nobody tuned it on (``benchmarks/gap_unseen.py``).
 
 Model-form stress of no-effect cases: every odd-numbered none case (``none#1``, ``#3``, ...)
@@ -127,7 +129,8 @@ LEFT_OUT_SLOT = 200              # slot of the left-out case of variant i: LEFT_
 UNSEEN_SLOT = 300                # unseen variant i (UNSEEN_VARIANTS): slot 300 + i, left out: 400 + i
 UNSEEN_LEFT_OUT_SLOT = 400
 #: first slots (effect, left out) of each unseen set, apart from each other and the self-check's
-UNSEEN_SLOTS = {"UNSEEN_VARIANTS": (UNSEEN_SLOT, UNSEEN_LEFT_OUT_SLOT), "UNSEEN_VARIANTS_2": (500, 600)}
+UNSEEN_SLOTS = {"UNSEEN_VARIANTS": (UNSEEN_SLOT, UNSEEN_LEFT_OUT_SLOT), "UNSEEN_VARIANTS_2": (500, 600),
+                "UNSEEN_VARIANTS_3": (700, 800)}
 PARAMETER_STREAM = 1             # variant parameters come from default_rng((case seed, PARAMETER_STREAM))
 STRESS_STREAM = 2                # stress of a stressed none case from default_rng((case seed, STRESS_STREAM))
 CALIBRATION_SEEDS = frozenset(range(100, 104))
@@ -256,10 +259,11 @@ def build_cases(concepts: Sequence[str] = CONCEPTS, *, seed: int = DEFAULT_SEED,
 def unseen_cases(seed: int, concepts: Sequence[str] = CONCEPTS, sensors: Sequence[str] = SENSOR_SETS,
                  variant_set: str = "UNSEEN_VARIANTS") -> list[Case]:
     """The cases of an unseen variant set (:data:`~ema_uq.gap.variant_catalogue.UNSEEN_SETS`: the
-    variants written after method version 2 was frozen, or ``UNSEEN_VARIANTS_2``, written for
-    the evaluation of version 4), per concept x sensor set: every one once, and every
-    in-catalogue one once more with its family left out. Each set has its own slots
-    (:data:`UNSEEN_SLOTS`), none of the self-check's, so no record repeats another case's."""
+    variants written after method version 2 was frozen, ``UNSEEN_VARIANTS_2``, written for the
+    evaluation of version 4, or ``UNSEEN_VARIANTS_3``, for that of version 5), per concept x
+    sensor set: every one once, and every in-catalogue one once more with its family left out.
+    Each set has its own slots (:data:`UNSEEN_SLOTS`), none of the self-check's, so no record
+    repeats another case's."""
     if variant_set not in UNSEEN_SETS:
         raise SelfCheckError(f"unknown unseen variant set {variant_set!r}; choose from {', '.join(UNSEEN_SETS)}")
     concepts, sensors = list(concepts), list(sensors)

@@ -13,11 +13,13 @@ import numpy as np
 from numba import njit
 
 from ..models import get_model
-from .variant_catalogue import (TWO_PI, V_BACKLASH_TWO_MASS, V_CARDAN, V_DEADZONE, V_LOAD_EFFICIENCY, V_LOAD_FOLLOW,
-                                V_LOAD_LINEAR, V_LOAD_OFFSET, V_LOAD_POWER, V_NONE, V_POSITION_SENSOR, V_RIPPLE,
-                                V_RIPPLE_PROPORTIONAL, V_SHAFT_TWO_MASS, V_SPEED_FEEDFORWARD, V_SPEED_INTEGRAL, V_SPOT,
-                                V_STRIBECK_ASYMMETRIC, V_STRIBECK_EXP, V_STRIBECK_GAUSS, V_STRIBECK_RATIONAL,
-                                V_TORQUE_LAG, V_TORQUE_SATURATION, V_UJOINT_SWIVEL, V_WARM_UP, Variant, VariantError)
+from .variant_catalogue import (TWO_PI, V_BACKLASH_TWO_MASS, V_BACKLASH_WORN, V_CARDAN, V_COUPLING_PROGRESSIVE,
+                                V_DEADZONE, V_LOAD_EFFICIENCY, V_LOAD_FOLLOW, V_LOAD_LINEAR, V_LOAD_OFFSET,
+                                V_LOAD_POWER, V_NONE, V_POSITION_DEADBAND, V_POSITION_SENSOR, V_RIPPLE,
+                                V_RIPPLE_PROPORTIONAL, V_SCREW_BINDING, V_SHAFT_TWO_MASS, V_SPEED_FEEDFORWARD,
+                                V_SPEED_INTEGRAL, V_SPEED_SENSOR, V_SPOT, V_STRIBECK_ASYMMETRIC, V_STRIBECK_EXP,
+                                V_STRIBECK_GAUSS, V_STRIBECK_DWELL, V_STRIBECK_RATIONAL, V_TORQUE_LAG,
+                                V_TORQUE_SATURATION, V_UJOINT_SWIVEL, V_WARM_UP, Variant, VariantError)
 
 #: ripple periods per motor revolution (as the catalogue's torque_ripple)
 RIPPLE_PERIODS = {"htls": 6.0, "lths": 4.0}
@@ -30,6 +32,17 @@ STROKE_REFERENCE = 0.25     # m, carriage stroke at which the swivelling joints 
 #: A, current at which the saturating torque constant has fallen by s / (1 + s): about the
 #: peak motor current of deploy-retract, so s reads as the fall where the drive works hardest
 SATURATION_CURRENT = {"htls": 30.0, "lths": 25.0}
+#: play of the least worn screw section over that at the retracted end (the nut's own clearance)
+WORN_PLAY_FLOOR = 0.25
+#: m, elastic approach of a ball nut's balls under the rigs' loads (Hertzian contact)
+BALL_APPROACH = 1e-5
+#: rad of screw rotation (0.56 mm of carriage travel) in which sliding wipes out the breakaway
+#: friction built up at rest
+DWELL_SLIDE = 0.5
+#: N m, reference torque of the progressive coupling: at the twist where its small-twist spring would
+#: carry it, the stiffness has grown by 1 + s. About the peak motor torque of deploy-retract, so s
+#: reads as the stiffening over the run
+COUPLING_TORQUE = {"htls": 40.0, "lths": 2.0}
 
 
 # ------------------------------------------------------------------------------------------
@@ -54,6 +67,7 @@ CONSTANT_LAYOUT = ("omega_eps", "r", "gamma", "beta1", "beta2", "k_y", "M_Bmax",
 #: state layout after the concept offset o (LT/HS: x[0] = I_A, o = 1; HT/LS: o = 0)
 (S_OMEGA, S_Y1, S_Y2, S_THETA, S_LOAD_SPEED, S_LOAD_ANGLE, S_LAG, S_CARRIAGE1, S_CARRIAGE2,
  S_SPEED_INTEGRAL) = range(10)
+S_BREAKAWAY = S_LAG    # the breakaway memory's state (no variant has a torque lag and a memory)
 N_STATE = 11
 
 HTLS_OUTPUTS = ("Omega", "y1", "y2", "I_A", "Omega_TP1", "Omega_TP2", "Omega_U1", "Omega_U2",
@@ -138,6 +152,19 @@ def _kernel_values(concept: str, variant: Variant | None, params: Mapping[str, f
         v[0] = p["rate"]
     elif kid == V_SPEED_FEEDFORWARD:  # motor radians per radian of phi_r on a rigid train
         v[:2] = (p["fraction"], c[K_KY] / _carriage_per_motor_radian(concept, c))
+    elif kid == V_BACKLASH_WORN:
+        v[:2] = (p["delta"], p["extent"])
+    elif kid == V_COUPLING_PROGRESSIVE:   # the two-mass layout (no play), then the stiffening
+        v[:6] = (p["load_share"], TWO_PI * p["frequency"], p["damping"], 0.0, p["stiffening"],
+                 COUPLING_TORQUE[concept])
+    elif kid == V_STRIBECK_DWELL:
+        v[:3] = (p["ratio"], p["speed"], p["rest_time"])
+    elif kid == V_SCREW_BINDING:
+        v[:2] = (p["binding"], p["phase"])
+    elif kid == V_SPEED_SENSOR:
+        v[:2] = (p["amplitude"], p["phase"])
+    elif kid == V_POSITION_DEADBAND:
+        v[0] = p["width"]
     return v
 
 
@@ -174,6 +201,39 @@ def _brake(engaged, v, c):
 
 
 @njit(cache=True, error_model="numpy")
+def _flank_contact(gap, half_play):
+    """How far a flank carries (0..1) when the drive side stands ``gap`` off the load side's
+    centre in a play of ``half_play``: taken up smoothly over the last CONTACT_RAMP of the play."""
+    ramp = min(max((gap / half_play - 1.0 + CONTACT_RAMP) / CONTACT_RAMP, 0.0), 1.0)
+    return ramp * ramp * (3.0 - 2.0 * ramp)
+
+
+@njit(cache=True, error_model="numpy")
+def _ball_contact(gap, half_play):
+    """How far a worn nut's flank carries (0..1) when the screw stands ``gap`` off the nut's centre
+    in a play of ``half_play``: the balls take the load up over their elastic approach
+    BALL_APPROACH, so a play narrower than that never unloads them fully."""
+    ramp = min(max((gap - half_play + BALL_APPROACH) / BALL_APPROACH, 0.0), 1.0)
+    return ramp * ramp * (3.0 - 2.0 * ramp)
+
+
+@njit(cache=True, error_model="numpy")
+def _worn_half_play(nut, vv):
+    """Half play of a worn screw where its nut stands: vv[0] at the retracted end, falling over
+    the extent vv[1] to the unworn floor (the section travelled most wears most)."""
+    worn = math.exp(-max(nut, 0.0) / vv[1])
+    return vv[0] * (WORN_PLAY_FLOOR + (1.0 - WORN_PLAY_FLOOR) * worn)
+
+
+@njit(cache=True, error_model="numpy")
+def _breakaway_excess(vid, x, o, vv):
+    """Factor on every Coulomb level: 1 + rho m with the breakaway memory m, else 1."""
+    if vid == V_STRIBECK_DWELL:
+        return 1.0 + vv[0] * x[o + S_BREAKAWAY]
+    return 1.0
+
+
+@njit(cache=True, error_model="numpy")
 def _station(k, vid, w_tp, a_tp, x, u, th, c, vv, o):
     """Station k (0, 1): U-joint and ball screw driven at bevel-output speed w_tp, angle a_tp.
 
@@ -197,8 +257,11 @@ def _station(k, vid, w_tp, a_tp, x, u, th, c, vv, o):
         force += vv[0]
     elif vid == V_DEADZONE and vv[0] > 0.0:
         carriage = min(max(x[o + S_CARRIAGE1 + k], nut - vv[0]), nut + vv[0])
-        ramp = min(max((abs(nut - carriage) / vv[0] - 1.0 + CONTACT_RAMP) / CONTACT_RAMP, 0.0), 1.0)
-        contact = ramp * ramp * (3.0 - 2.0 * ramp)
+        contact = _flank_contact(abs(nut - carriage), vv[0])
+    elif vid == V_BACKLASH_WORN and vv[0] > 0.0:
+        half = _worn_half_play(nut, vv)
+        carriage = min(max(x[o + S_CARRIAGE1 + k], nut - half), nut + half)
+        contact = _ball_contact(abs(nut - carriage), half)
     c_ts = th[T_CTS1 + s]
     if vid == V_LOAD_LINEAR:
         c_ts += vv[0] * c[K_R] * (math.sqrt(force * force + LOAD_SMOOTHING ** 2) - LOAD_SMOOTHING)
@@ -210,6 +273,8 @@ def _station(k, vid, w_tp, a_tp, x, u, th, c, vv, o):
         xi = (nut - vv[1]) / vv[2]
         if abs(xi) < 1.0:
             c_ts += vv[0] * 0.5 * (1.0 + math.cos(math.pi * xi))
+    elif vid == V_SCREW_BINDING and k == 0:   # a lead of nut travel per screw radian: nut / lead is its angle
+        c_ts += vv[0] * 0.5 * (1.0 + math.cos(nut / c[K_LEAD] + vv[1]))
     m_er = -c[K_RSC] * force * contact
     if vid == V_LOAD_EFFICIENCY:
         opposing = 0.5 * (1.0 + math.tanh(m_er * w_u / EFFICIENCY_POWER))
@@ -217,17 +282,22 @@ def _station(k, vid, w_tp, a_tp, x, u, th, c, vv, o):
                  * (vv[1] + (1.0 - vv[1]) * opposing))
     elif vid == V_POSITION_SENSOR:   # the loops and the record see the sensor's reading
         carriage += vv[0] * math.sin(TWO_PI * carriage / vv[1] + vv[2 + k])
-    m_tser = th[T_BTS1 + s] * w_u + _coulomb(c_ts, w_u, eps, vid, vv) + m_er
-    m_uer = ratio * m_tser * c[K_INVCB1 + k] + th[T_BU1 + s] * w_u + _coulomb(th[T_CU1 + s], w_u, eps, vid, vv)
+    excess = _breakaway_excess(vid, x, o, vv)
+    # a worn nut's balls roll under load only against a flank: inside the play the screw turns free
+    rolling = contact if vid == V_BACKLASH_WORN else 1.0
+    m_tser = rolling * (th[T_BTS1 + s] * w_u + _coulomb(excess * c_ts, w_u, eps, vid, vv)) + m_er
+    m_uer = (ratio * m_tser * c[K_INVCB1 + k] + th[T_BU1 + s] * w_u
+             + _coulomb(excess * th[T_CU1 + s], w_u, eps, vid, vv))
     return w_u, m_er, m_tser, m_uer, carriage
 
 
 @njit(cache=True, error_model="numpy")
-def _coupling_torque(twist, twist_rate, stiffness, damping, half_play):
+def _coupling_torque(twist, twist_rate, stiffness, damping, half_play, hardening):
     """Torque through a spring-damper with a dead band of +-half_play (no torque inside it, and
-    no pulling torque while the flanks separate); half_play = 0 is a plain shaft."""
+    no pulling torque while the flanks separate); half_play = 0 is a plain shaft, whose spring
+    stiffens as stiffness (1 + hardening twist^2) (an elastomer coupling; hardening 0: linear)."""
     if half_play <= 0.0:
-        return stiffness * twist + damping * twist_rate
+        return stiffness * twist * (1.0 + hardening * twist * twist) + damping * twist_rate
     if twist > half_play:
         return max(stiffness * (twist - half_play) + damping * twist_rate, 0.0)
     if twist < -half_play:
@@ -238,11 +308,17 @@ def _coupling_torque(twist, twist_rate, stiffness, damping, half_play):
 @njit(cache=True, error_model="numpy")
 def _two_mass(drive, load, omega, theta, w_load, a_load, inertia, vv, dx, o):
     """Motor inertia (1 - share) J under ``drive``, load inertia share J under ``load`` [N m],
-    joined by the coupling of mode vv[1] [rad/s], damping ratio vv[2], half play vv[3] [rad]."""
+    joined by the coupling of mode vv[1] [rad/s] (at small twist), damping ratio vv[2], half play
+    vv[3] [rad]; a progressive coupling's stiffness has grown by the factor 1 + vv[4] at the
+    twist where its small-twist spring would carry vv[5] [N m]."""
     share, wn, zeta = vv[0], vv[1], vv[2]
     j_motor, j_load = (1.0 - share) * inertia, share * inertia
     j_red = j_motor * j_load / inertia
-    torque = _coupling_torque(theta - a_load, omega - w_load, j_red * wn * wn, 2.0 * zeta * wn * j_red, vv[3])
+    stiffness = j_red * wn * wn
+    hardening = 0.0
+    if vv[4] > 0.0:
+        hardening = vv[4] * (stiffness / vv[5]) ** 2
+    torque = _coupling_torque(theta - a_load, omega - w_load, stiffness, 2.0 * zeta * wn * j_red, vv[3], hardening)
     dx[o + S_OMEGA] = (drive - torque) / j_motor
     dx[o + S_LOAD_SPEED] = (torque - load) / j_load
     dx[o + S_LOAD_ANGLE] = w_load
@@ -268,6 +344,33 @@ def _speed_command(vid, command, u, vv):
     if vid == V_SPEED_FEEDFORWARD:
         return command + vv[0] * vv[1] * u[4]
     return command
+
+
+@njit(cache=True, error_model="numpy")
+def _position_error(vid, error, vv):
+    """The position error the loop acts on: with a dead band, what lies beyond +-vv[0]."""
+    if vid == V_POSITION_DEADBAND:
+        return error - min(max(error, -vv[0]), vv[0])
+    return error
+
+
+@njit(cache=True, error_model="numpy")
+def _speed_reading(vid, omega, theta, vv):
+    """The motor speed the drive reads: an eccentric angle sensor reads theta + A sin(theta + phi),
+    so its speed omega (1 + A cos(theta + phi))."""
+    if vid == V_SPEED_SENSOR:
+        return omega * (1.0 + vv[0] * math.cos(theta + vv[1]))
+    return omega
+
+
+@njit(cache=True, error_model="numpy")
+def _breakaway_rate(vid, x, o, screw_speed, vv):
+    """d/dt of the breakaway memory m: it goes to exp(-(v/v_s)^2) of the screw speed v, slowly at
+    rest (time constant vv[2], the rest time) and within DWELL_SLIDE of screw rotation in motion."""
+    if vid != V_STRIBECK_DWELL:
+        return 0.0
+    q = screw_speed / vv[1]
+    return (math.exp(-q * q) - x[o + S_BREAKAWAY]) * (1.0 / vv[2] + abs(screw_speed) / DWELL_SLIDE)
 
 
 @njit(cache=True, error_model="numpy")
@@ -300,7 +403,7 @@ def _htls_rhs(vid, x, u, th, c, vv, dx, y, outputs):
     dx[:] = 0.0
     eps = c[K_EPS]
     omega, theta = x[S_OMEGA], x[S_THETA]
-    two_mass = vid == V_BACKLASH_TWO_MASS or vid == V_SHAFT_TWO_MASS
+    two_mass = vid == V_BACKLASH_TWO_MASS or vid == V_SHAFT_TWO_MASS or vid == V_COUPLING_PROGRESSIVE
     w_d = x[S_LOAD_SPEED] if two_mass else omega
     a_d = x[S_LOAD_ANGLE] if two_mass else theta
     i1, i2 = c[K_ITP1], c[K_ITP2]
@@ -308,11 +411,14 @@ def _htls_rhs(vid, x, u, th, c, vv, dx, y, outputs):
     w_u1, m_er1, m_tser1, m_uer1, y1 = _station(0, vid, w_tp1, a_d / i1, x, u, th, c, vv, 0)
     w_u2, m_er2, m_tser2, m_uer2, y2 = _station(1, vid, w_tp2, a_d / i2, x, u, th, c, vv, 0)
     brake = u[3]
-    m_tper1 = (m_uer1 / i1 + th[T_BTP1] * w_tp1 + _coulomb(th[T_CTP1], w_tp1, eps, vid, vv)
+    excess = _breakaway_excess(vid, x, 0, vv)
+    m_tper1 = (m_uer1 / i1 + th[T_BTP1] * w_tp1 + _coulomb(excess * th[T_CTP1], w_tp1, eps, vid, vv)
                + _brake(brake, w_tp1, c))
-    m_tper2 = (m_uer2 / i2 + th[T_BTP2] * w_tp2 + _coulomb(th[T_CTP2], w_tp2, eps, vid, vv)
+    m_tper2 = (m_uer2 / i2 + th[T_BTP2] * w_tp2 + _coulomb(excess * th[T_CTP2], w_tp2, eps, vid, vv)
                + _brake(brake, w_tp2, c))
-    speed_error = _speed_command(vid, th[T_PACE] * (c[K_KY] * u[0] - 0.5 * (y1 + y2)), u, vv) - omega
+    omega_read = _speed_reading(vid, omega, theta, vv)
+    position_error = _position_error(vid, c[K_KY] * u[0] - 0.5 * (y1 + y2), vv)
+    speed_error = _speed_command(vid, th[T_PACE] * position_error, u, vv) - omega_read
     command = th[T_PPCE] * _speed_loop_input(vid, speed_error, x[S_SPEED_INTEGRAL], vv)
     m_n = min(max(command, c[K_MMIN]), c[K_MMAX])
     if vid == V_SPEED_INTEGRAL:
@@ -321,6 +427,8 @@ def _htls_rhs(vid, x, u, th, c, vv, dx, y, outputs):
     if vid == V_TORQUE_LAG:  # the lagged torque is what the current sensor sees
         m_motor = x[S_LAG]
         dx[S_LAG] = (m_n - m_motor) / vv[0]
+    elif vid == V_STRIBECK_DWELL:
+        dx[S_BREAKAWAY] = _breakaway_rate(vid, x, 0, w_tp1, vv)
     i_a = m_motor / th[T_KN]
     if vid == V_TORQUE_SATURATION:  # the drive sets the current for the nominal constant
         m_motor = m_motor * _saturation(i_a, vv)
@@ -332,8 +440,8 @@ def _htls_rhs(vid, x, u, th, c, vv, dx, y, outputs):
     dx[S_Y1] = c[K_LEAD] * w_u1
     dx[S_Y2] = c[K_LEAD] * w_u2
     dx[S_THETA] = omega
-    if outputs:
-        values = (omega, y1, y2, i_a, w_tp1, w_tp2, w_u1, w_u2, m_er1, m_er2, m_tser1, m_tser2,
+    if outputs:   # the drive's speed reading is the recorded motor speed
+        values = (omega_read, y1, y2, i_a, w_tp1, w_tp2, w_u1, w_u2, m_er1, m_er2, m_tser1, m_tser2,
                   m_uer1, m_uer2, m_tper1, m_tper2)
         for j in range(16):
             y[j] = values[j]
@@ -345,7 +453,7 @@ def _lths_rhs(vid, x, u, th, c, vv, dx, y, outputs):
     dx[:] = 0.0
     eps = c[K_EPS]
     i_a, omega, theta = x[0], x[1 + S_OMEGA], x[1 + S_THETA]
-    two_mass = vid == V_BACKLASH_TWO_MASS or vid == V_SHAFT_TWO_MASS
+    two_mass = vid == V_BACKLASH_TWO_MASS or vid == V_SHAFT_TWO_MASS or vid == V_COUPLING_PROGRESSIVE
     w_d = x[1 + S_LOAD_SPEED] if two_mass else omega   # drive side of the magnetic gear, motor-referred
     a_d = x[1 + S_LOAD_ANGLE] if two_mass else theta
     i_mg, i_bg1, i_bg2, i_tp2 = c[K_IMG], c[K_IBG1], c[K_IBG2], c[K_ITP2]
@@ -355,15 +463,18 @@ def _lths_rhs(vid, x, u, th, c, vv, dx, y, outputs):
     w_u1, m_er1, m_tser1, m_uer1, y1 = _station(0, vid, w_tp1, a_d / (i_mg * i_bg1), x, u, th, c, vv, 1)
     w_u2, m_er2, m_tser2, m_uer2, y2 = _station(1, vid, w_tp2, a_d / (i_mg * i_bg2 * i_tp2), x, u, th, c, vv, 1)
     brake = u[3]
-    m_mg2 = (m_uer2 / i_tp2 + th[T_BTP2] * w_tp2 + _coulomb(th[T_CTP2], w_tp2, eps, vid, vv)
+    excess = _breakaway_excess(vid, x, 1, vv)
+    m_mg2 = (m_uer2 / i_tp2 + th[T_BTP2] * w_tp2 + _coulomb(excess * th[T_CTP2], w_tp2, eps, vid, vv)
              + _brake(brake, w_tp2, c))
-    m_tper = (m_uer1 / i_bg1 + m_mg2 / i_bg2 + th[T_BTP1] * w_tp1 + _coulomb(th[T_CTP1], w_tp1, eps, vid, vv)
-              + _brake(brake, w_tp1, c))
+    m_tper = (m_uer1 / i_bg1 + m_mg2 / i_bg2 + th[T_BTP1] * w_tp1
+              + _coulomb(excess * th[T_CTP1], w_tp1, eps, vid, vv) + _brake(brake, w_tp1, c))
     m_iser = m_tper + c[K_DIS] * a_d / i_mg
     w_mg = omega / i_mg   # the magnetic gear turns with the motor (a compliance sits behind it)
-    mg_loss = th[T_BMG] * w_mg + _coulomb(th[T_CMG], w_mg, eps, vid, vv)
+    mg_loss = th[T_BMG] * w_mg + _coulomb(excess * th[T_CMG], w_mg, eps, vid, vv)
     m_mger = m_iser / i_mg + mg_loss
-    speed_error = _speed_command(vid, th[T_PACE] * (c[K_KY] * u[0] - 0.5 * (y1 + y2)), u, vv) - omega
+    omega_read = _speed_reading(vid, omega, theta, vv)
+    position_error = _position_error(vid, c[K_KY] * u[0] - 0.5 * (y1 + y2), vv)
+    speed_error = _speed_command(vid, th[T_PACE] * position_error, u, vv) - omega_read
     command = th[T_PPCE] / th[T_KN] * _speed_loop_input(vid, speed_error, x[1 + S_SPEED_INTEGRAL], vv)
     u_a = min(max(command, -c[K_UMAX]), c[K_UMAX])
     if vid == V_SPEED_INTEGRAL:
@@ -375,6 +486,8 @@ def _lths_rhs(vid, x, u, th, c, vv, dx, y, outputs):
     if vid == V_TORQUE_LAG:
         dx[1 + S_LAG] = (m_motor - x[1 + S_LAG]) / vv[0]
         m_motor = x[1 + S_LAG]
+    elif vid == V_STRIBECK_DWELL:
+        dx[1 + S_BREAKAWAY] = _breakaway_rate(vid, x, 1, w_tp1, vv)
     drive = m_motor + _ripple(vid, theta, m_motor, vv)
     if two_mass:
         _two_mass(drive - mg_loss, m_iser / i_mg, omega, theta, w_d, a_d, th[T_J], vv, dx, 1)
@@ -383,8 +496,8 @@ def _lths_rhs(vid, x, u, th, c, vv, dx, y, outputs):
     dx[1 + S_Y1] = c[K_LEAD] * w_u1
     dx[1 + S_Y2] = c[K_LEAD] * w_u2
     dx[1 + S_THETA] = omega
-    if outputs:
-        values = (omega, y1, y2, i_a, u_a, w_mg, w_tp1, w_mg2, w_tp2, w_u1, w_u2, m_er1, m_er2,
+    if outputs:   # the drive's speed reading is the recorded motor speed
+        values = (omega_read, y1, y2, i_a, u_a, w_mg, w_tp1, w_mg2, w_tp2, w_u1, w_u2, m_er1, m_er2,
                   m_tser1, m_tser2, m_uer1, m_uer2, m_mg2, m_tper, m_mger)
         for j in range(20):
             y[j] = values[j]
@@ -401,15 +514,20 @@ def _rhs(concept_id, vid, x, u, th, c, vv, dx, y, outputs):
 @njit(cache=True, error_model="numpy")
 def _run(concept_id, vid, th, c, vv, inputs, h, n_sub, out):
     """Fixed-step RK4 from rest over held inputs (n_samples, 5: phi_r, F_ER1, F_ER2, brake and
-    phi_r's rate); outputs (n_samples, n_outputs) at t_k from x(t_k) and u_k. The output play is
-    projected after every step; the friction warm-up's loss factor is held over each sample
-    interval, as the inputs are."""
+    phi_r's rate); outputs (n_samples, n_outputs) at t_k from x(t_k) and u_k. The output plays
+    (constant or worn) are projected after every step; the friction warm-up's loss factor is held
+    over each sample interval, as the inputs are."""
     o = concept_id  # LT/HS carries I_A ahead of the common states
     x = np.zeros(N_STATE)
     xt = np.empty(N_STATE)
     k1, k2, k3, k4 = np.empty(N_STATE), np.empty(N_STATE), np.empty(N_STATE), np.empty(N_STATE)
     scratch = np.empty(out.shape[1])
     n = inputs.shape[0]
+    if vid == V_BACKLASH_WORN:   # each carriage starts on the flank its load presses it against
+        for j in range(2):
+            x[o + S_CARRIAGE1 + j] = math.copysign(_worn_half_play(0.0, vv), inputs[0, 1 + j])
+    elif vid == V_STRIBECK_DWELL:   # the drive stood long before the record: its breakaway is full
+        x[o + S_BREAKAWAY] = 1.0
     cold = th
     th = cold.copy()
     for k in range(n):
@@ -439,3 +557,8 @@ def _run(concept_id, vid, th, c, vv, inputs, h, n_sub, out):
                 for j in range(2):
                     nut = x[o + S_Y1 + j]
                     x[o + S_CARRIAGE1 + j] = min(max(x[o + S_CARRIAGE1 + j], nut - vv[0]), nut + vv[0])
+            elif vid == V_BACKLASH_WORN:
+                for j in range(2):
+                    nut = x[o + S_Y1 + j]
+                    half = _worn_half_play(nut, vv)
+                    x[o + S_CARRIAGE1 + j] = min(max(x[o + S_CARRIAGE1 + j], nut - half), nut + half)

@@ -45,8 +45,8 @@ import numpy as np
 
 from ..experiments import Experiment, Measurement, add_noise, deploy_retract, validation
 from ..models import get_model
-from .variant_catalogue import (CONCEPTS, UNSEEN_VARIANTS, UNSEEN_VARIANTS_2, VARIANTS, Variant, VariantError,
-                                _check_concept, check_variant_parameters, get_variant)
+from .variant_catalogue import (CONCEPTS, UNSEEN_VARIANTS, UNSEEN_VARIANTS_2, UNSEEN_VARIANTS_3, VARIANTS, Variant,
+                                VariantError, _check_concept, check_variant_parameters, get_variant)
 from .variant_kernel import KERNEL_OUTPUTS, _kernel_constants, _kernel_parameters, _kernel_values, _run
 
 # The variants and the kernel's layouts stay importable from here, where they were defined
@@ -448,8 +448,8 @@ def visibility(concept: str, variant: str, params: Mapping[str, float], *, exper
 
 
 __all__ = ["CONCEPTS", "FAMILIES", "REALISTIC_CHANNELS", "STRESS_CONSTANTS", "STRESS_RANGES", "UNSEEN_VARIANTS",
-           "UNSEEN_VARIANTS_2", "VARIANTS", "Variant", "VariantError", "VariantParameter", "check_stress",
-           "check_variant_parameters", "coloured_noise", "delay_allpass", "delay_hermite", "draw_stress",
-           "draw_variant_parameters", "get_variant", "make_records", "perturbed_base", "quantise",
+           "UNSEEN_VARIANTS_2", "UNSEEN_VARIANTS_3", "VARIANTS", "Variant", "VariantError", "VariantParameter",
+           "check_stress", "check_variant_parameters", "coloured_noise", "delay_allpass", "delay_hermite",
+           "draw_stress", "draw_variant_parameters", "get_variant", "make_records", "perturbed_base", "quantise",
            "read_between_samples", "record_channels", "sample_hold", "shape_command", "simulate_variant",
            "validation_scaled", "visibility", "window_average"]

@@ -390,12 +390,55 @@ def test_the_second_unseen_set_has_cases_of_its_own():
     assert first == selfcheck.unseen_cases(5301, variant_set="UNSEEN_VARIANTS")
     assert {c.variant for c in first} == set(UNSEEN_VARIANTS)
     with pytest.raises(selfcheck.SelfCheckError, match="unknown unseen variant set") as info:
-        selfcheck.unseen_cases(5401, variant_set="UNSEEN_VARIANTS_3")
+        selfcheck.unseen_cases(5401, variant_set="UNSEEN_VARIANTS_9")
     assert "\n" not in str(info.value)
 
 
+def test_the_third_unseen_set_has_cases_of_its_own():
+    from ema_uq.gap.variant_catalogue import UNSEEN_VARIANTS_3
+
+    third = selfcheck.unseen_cases(5601, variant_set="UNSEEN_VARIANTS_3")
+    inside = [v for v, var in UNSEEN_VARIANTS_3.items() if var.family is not None]
+    assert len(third) == 2 * 2 * (len(UNSEEN_VARIANTS_3) + len(inside)) == 36
+    assert {c.variant for c in third} == set(UNSEEN_VARIANTS_3)
+    assert {c.kind for c in third if c.family is None} == {"out_of_catalogue"}
+    assert {c.kind for c in third if c.family is not None} == {"effect", "left_out"}
+    for case in (c for c in third if c.kind == "left_out"):
+        assert case.variant in inside and case.family == UNSEEN_VARIANTS_3[case.variant].family
+        assert not set(case.candidates) & set(selfcheck.catalogue_families(case.concept)[case.family])
+    # no record repeats one of the self-check's or of an earlier unseen set, at this seed or theirs
+    for seed in (5601, 5602, 5401, 5301):
+        others = (selfcheck.build_cases(seed=seed) + selfcheck.unseen_cases(seed)
+                  + selfcheck.unseen_cases(seed, variant_set="UNSEEN_VARIANTS_2"))
+        mine = selfcheck.unseen_cases(seed, variant_set="UNSEEN_VARIANTS_3")
+        assert not {c.seed for c in mine} & {c.seed for c in others}
+    assert len({c.seed for c in third}) == len(third)
+    assert not {c.variant for c in selfcheck.build_cases(seed=5601)} & set(UNSEEN_VARIANTS_3)
+    assert selfcheck.UNSEEN_SLOTS["UNSEEN_VARIANTS_3"] == (700, 800)
+
+
+def test_the_third_unseen_protocol_lists_its_cases():
+    with open(ROOT / "benchmarks" / "gap_unseen3.yaml", encoding="utf-8") as fh:
+        protocol = yaml.safe_load(fh)
+    from ema_uq.gap.variant_catalogue import UNSEEN_VARIANTS_3
+
+    assert protocol["variant_set"] == "UNSEEN_VARIANTS_3" and protocol["seeds"] == [5601, 5602]
+    assert protocol["method_protocol"] == "benchmarks/gap_protocol_v5.yaml"
+    assert protocol["results"] == "benchmarks/protocol_outcomes/method5/unseen3"
+    written = {k: v.family for k, v in UNSEEN_VARIANTS_3.items()}
+    assert {k: v["family"] for k, v in protocol["variants"].items()} == written
+    assert {k for k, v in protocol["variants"].items() if v.get("left_out_too")} == {
+        k for k, v in UNSEEN_VARIANTS_3.items() if v.family is not None}
+    for seed in protocol["seeds"]:
+        cases = selfcheck.unseen_cases(seed, protocol["concepts"], protocol["sensors"], protocol["variant_set"])
+        assert len(cases) == protocol["n_cases_per_seed"]
+        assert {c.variant for c in cases if c.kind == "left_out"} == {
+            k for k, v in protocol["variants"].items() if v.get("left_out_too")}
+
+
 @pytest.mark.parametrize("protocol_file, variant", [("gap_unseen.yaml", "stribeck_asymmetric"),
-                                                    ("gap_unseen2.yaml", "ujoint_swivel")])
+                                                    ("gap_unseen2.yaml", "ujoint_swivel"),
+                                                    ("gap_unseen3.yaml", "stribeck_dwell")])
 def test_the_unseen_protocol_describes_the_cases_it_runs(tmp_path, monkeypatch, protocol_file, variant):
     import sys
 

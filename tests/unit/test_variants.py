@@ -57,7 +57,8 @@ def nominal_outputs():
     return experiment, out
 
 
-@pytest.mark.parametrize("name", list(V.VARIANTS) + list(V.UNSEEN_VARIANTS) + list(V.UNSEEN_VARIANTS_2))
+@pytest.mark.parametrize("name", list(V.VARIANTS) + list(V.UNSEEN_VARIANTS) + list(V.UNSEEN_VARIANTS_2)
+                         + list(V.UNSEEN_VARIANTS_3))
 def test_every_variant_is_visible_at_its_weakest(name, nominal_outputs):
     experiment, nominal = nominal_outputs
     variant = V.get_variant(name)
@@ -82,7 +83,15 @@ def test_families_and_descriptions():
     assert not set(V.UNSEEN_VARIANTS_2) & (set(V.VARIANTS) | set(V.UNSEEN_VARIANTS))
     earlier = {v.kernel_id for v in [*V.VARIANTS.values(), *V.UNSEEN_VARIANTS.values()]}
     assert all(v.kernel_id == 0 or v.kernel_id > max(earlier) for v in V.UNSEEN_VARIANTS_2.values())
-    for v in [*V.VARIANTS.values(), *V.UNSEEN_VARIANTS.values(), *V.UNSEEN_VARIANTS_2.values()]:
+    third = [v.family for v in V.UNSEEN_VARIANTS_3.values()]
+    assert set(third) - {None} <= set(V.FAMILIES) and third.count(None) == 3 and len(set(third) - {None}) == 3
+    assert {"backlash", "shaft_compliance"} <= set(third)             # families no earlier unseen set took
+    assert not set(V.UNSEEN_VARIANTS_3) & (set(V.VARIANTS) | set(V.UNSEEN_VARIANTS) | set(V.UNSEEN_VARIANTS_2))
+    earlier |= {v.kernel_id for v in V.UNSEEN_VARIANTS_2.values()}
+    assert all(v.kernel_id > max(earlier) for v in V.UNSEEN_VARIANTS_3.values())
+    assert len({v.kernel_id for v in V.UNSEEN_VARIANTS_3.values()}) == len(V.UNSEEN_VARIANTS_3)
+    for v in [*V.VARIANTS.values(), *V.UNSEEN_VARIANTS.values(), *V.UNSEEN_VARIANTS_2.values(),
+              *V.UNSEEN_VARIANTS_3.values()]:
         assert v.description
         for p in v.parameters:
             for concept in ("htls", "lths"):
@@ -93,7 +102,8 @@ def test_families_and_descriptions():
 
 def test_draws_follow_their_ranges():
     rng = np.random.default_rng(7)
-    for name, variant in [*V.VARIANTS.items(), *V.UNSEEN_VARIANTS.items(), *V.UNSEEN_VARIANTS_2.items()]:
+    for name, variant in [*V.VARIANTS.items(), *V.UNSEEN_VARIANTS.items(), *V.UNSEEN_VARIANTS_2.items(),
+                          *V.UNSEEN_VARIANTS_3.items()]:
         for _ in range(20):
             values = V.draw_variant_parameters(name, rng, "lths")
             assert list(values) == list(variant.parameter_names)
@@ -382,3 +392,113 @@ def test_proportional_ripple_and_saturation_follow_the_motor_torque_and_current(
     saturation = np.array([0.2, 30.0, 0, 0, 0, 0, 0, 0.0])
     assert _saturation(30.0, saturation) == pytest.approx(1.0 / 1.2)
     assert _saturation(-30.0, saturation) == _saturation(30.0, saturation) and _saturation(0.0, saturation) == 1.0
+
+
+# --- the variants written for the evaluation of method version 5 (UNSEEN_VARIANTS_3) --------
+@pytest.mark.parametrize("concept", ["htls", "lths"])
+def test_third_unseen_variants_reduce_to_the_nominal_model_or_their_parent_when_off(concept):
+    nominal = _outputs(concept)
+    for name, params in (("backlash_worn_screw", {"delta": 0.0, "extent": 0.1}),
+                         ("stribeck_dwell", {"ratio": 0.0, "speed": 1.0, "rest_time": 2.0}),
+                         ("screw_binding", {"binding": 0.0, "phase": 1.0}),
+                         ("speed_sensor_eccentricity", {"amplitude": 0.0, "phase": 1.0}),
+                         ("position_loop_deadband", {"width": 0.0})):
+        assert all(np.array_equal(nominal[ch], v) for ch, v in _outputs(concept, name, params).items()), name
+    # a coupling that does not stiffen is the linear two-mass spring
+    mode = {"frequency": 40.0, "damping": 0.1, "load_share": 0.6}
+    linear = _outputs(concept, "shaft_compliance_two_mass", mode)
+    same = _outputs(concept, "shaft_compliance_progressive", {**mode, "stiffening": 0.0})
+    assert all(np.array_equal(linear[ch], v) for ch, v in same.items())
+
+
+def _chi_square(concept, a, b):
+    """Largest rig channel's chi-square between two records at 2 % noise of the nominal model."""
+    experiment = deploy_retract()
+    model = get_model(concept)
+    index = [model.outputs.index(ch) for ch in V.REALISTIC_CHANNELS[concept]]
+    sigma = 0.02 * np.sqrt(np.mean(V.simulate_variant(concept, experiment)[:, index] ** 2, axis=0))
+    first, second = (V.simulate_variant(concept, experiment, None, *v)[:, index] for v in (a, b))
+    return float(np.sum(((first - second) / sigma) ** 2, axis=0).max())
+
+
+@pytest.mark.parametrize("concept", ["htls", "lths"])
+def test_third_unseen_family_forms_are_not_their_catalogue_laws(concept):
+    # at its weakest each form shows what sets it apart from the catalogue's law of its family:
+    # a stiffening spring, a breakaway that needs time at rest to build up, a play that narrows
+    progressive = V.get_variant("shaft_compliance_progressive").weakest(concept)
+    assert _chi_square(concept, ("shaft_compliance_progressive", progressive),
+                       ("shaft_compliance_progressive", {**progressive, "stiffening": 0.0})) > VISIBLE
+    dwell = V.get_variant("stribeck_dwell").weakest(concept)
+    assert _chi_square(concept, ("stribeck_dwell", dwell), ("stribeck_dwell", {**dwell, "rest_time": 1e-3})) > VISIBLE
+    worn = V.get_variant("backlash_worn_screw").weakest(concept)
+    assert _chi_square(concept, ("backlash_worn_screw", worn),
+                       ("backlash_worn_screw", {**worn, "extent": 10.0})) > VISIBLE   # ~one width over the stroke
+
+
+def test_worn_play_narrows_along_the_stroke_and_couplings_stiffen_with_their_twist():
+    from ema_uq.gap.variant_kernel import WORN_PLAY_FLOOR, _coupling_torque, _worn_half_play
+
+    vv = np.array([1e-4, 0.1, 0, 0, 0, 0, 0, 0.0])
+    assert _worn_half_play(0.0, vv) == pytest.approx(1e-4) and _worn_half_play(-0.01, vv) == pytest.approx(1e-4)
+    assert _worn_half_play(0.1, vv) == pytest.approx(1e-4 * (WORN_PLAY_FLOOR + (1 - WORN_PLAY_FLOOR) / math.e))
+    assert _worn_half_play(5.0, vv) == pytest.approx(WORN_PLAY_FLOOR * 1e-4)
+    stiffness, reference, stiffening = 2000.0, 40.0, 3.0
+    twist = reference / stiffness
+    hardening = stiffening / twist ** 2
+    assert _coupling_torque(twist, 0.0, stiffness, 5.0, 0.0, hardening) == pytest.approx(reference * (1 + stiffening))
+    assert _coupling_torque(-0.1 * twist, 0.0, stiffness, 5.0, 0.0, hardening) == pytest.approx(
+        -0.1 * reference * (1 + 0.01 * stiffening))
+
+
+def test_breakaway_builds_up_at_rest_and_sliding_wipes_it_out():
+    from ema_uq.gap.variant_catalogue import V_STRIBECK_DWELL
+    from ema_uq.gap.variant_kernel import DWELL_SLIDE, S_BREAKAWAY, _breakaway_excess, _breakaway_rate
+
+    vv = np.array([2.0, 1.0, 3.0, 0, 0, 0, 0, 0.0])
+    x = np.zeros(11)
+    x[S_BREAKAWAY] = 0.25
+    assert _breakaway_rate(V_STRIBECK_DWELL, x, 0, 0.0, vv) == pytest.approx(0.75 / 3.0)   # over the rest time
+    moving = _breakaway_rate(V_STRIBECK_DWELL, x, 0, 10.0, vv)
+    assert moving == pytest.approx((math.exp(-100.0) - 0.25) * (1 / 3.0 + 10.0 / DWELL_SLIDE))
+    assert moving < -20 * 0.25 / 3.0                                       # gone within a short slide
+    assert _breakaway_excess(V_STRIBECK_DWELL, x, 0, vv) == pytest.approx(1.5)
+    assert _breakaway_excess(0, x, 0, vv) == 1.0 and _breakaway_rate(0, x, 0, 0.0, vv) == 0.0
+
+
+@pytest.mark.parametrize("concept", ["htls", "lths"])
+def test_third_unseen_variants_act_as_described(concept):
+    nominal = _outputs(concept)
+    # each carriage starts on the flank its load (pulling the carriage in) presses it against
+    worn = _outputs(concept, "backlash_worn_screw", {"delta": 1e-4, "extent": 0.1})
+    assert worn["y1"][0] == pytest.approx(-1e-4) and worn["y2"][0] == pytest.approx(-1e-4)
+    # only screw 1 binds: its torque changes, screw 2's hardly
+    bound = _outputs(concept, "screw_binding", {"binding": 2.0, "phase": 0.5})
+    first = np.abs(bound["M_TSER1"] - nominal["M_TSER1"]).mean()
+    assert first > 0.3 and np.abs(bound["M_TSER2"] - nominal["M_TSER2"]).mean() < 0.1 * first
+    # the recorded motor speed is the eccentric sensor's: the true speed times 1 + A cos(theta + phi)
+    read = _outputs(concept, "speed_sensor_eccentricity", {"amplitude": 0.02, "phase": 0.3})
+    true = 2.0 * read["Omega_TP1"] if concept == "htls" else 20.0 * read["Omega_MG"]
+    moving = np.abs(true) > 1.0
+    ratio = read["Omega"][moving] / true[moving]
+    assert np.all(np.abs(ratio - 1.0) <= 0.02 + 1e-9) and ratio.min() < 0.985 and ratio.max() > 1.015
+    # a dead band of width w adds about w to every error the position loop settles at
+    constants = dict(zip(get_model(concept).constants.names, get_model(concept).constants.nominal))
+    phi = validation().inputs["phi_r"]
+    held = np.array([k >= 150 and np.ptp(phi[k - 150:k + 1]) == 0 for k in range(len(phi))])
+
+    def error(out):
+        return np.abs(constants["k_y"] * phi - 0.5 * (out["y1"] + out["y2"]))
+
+    dead = _outputs(concept, "position_loop_deadband", {"width": 1e-3})
+    assert error(dead)[held].mean() - error(nominal)[held].mean() == pytest.approx(1e-3, rel=0.1)
+
+
+@pytest.mark.parametrize("name", list(V.UNSEEN_VARIANTS_3))
+def test_third_unseen_records_differ_from_the_nominal_ones(name):
+    for concept in ("htls", "lths"):
+        params = V.draw_variant_parameters(name, np.random.default_rng(11), concept)
+        varied = V.make_records(concept, name, params, seed=21, channels="realistic")
+        plain = V.make_records(concept, None, None, seed=21, channels="realistic")
+        assert varied[3]["variant"] == name and varied[3]["expected"] == (V.get_variant(name).family or "unexplained")
+        for a, b in zip(varied[:3], plain[:3]):
+            assert np.all(np.isfinite(a.values)) and not np.array_equal(a.values, b.values)
