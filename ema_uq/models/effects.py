@@ -322,6 +322,17 @@ def _p(name, unit, nominal, lower, upper, description) -> Parameter:
 
 TWO_PI = 2.0 * math.pi
 
+
+def _torsional_mode(effect: str, condition: str = "") -> tuple[Parameter, ...]:
+    """Period, damping ratio and load-side inertia share of a two-inertia torsional mode, the
+    parameters of ``effect`` (``condition``: where the mode has that period, e.g. "unloaded")."""
+    at = f" {condition}" if condition else ""
+    return (_p(f"{effect}_period", "s", 0.03, 0.0, 1.0,
+               f"period 2π/ω_n of the torsional mode{at} (stiffness k = J_red ω_n², rigid at 0)"),
+            _p(f"{effect}_zeta", "1", 0.05, 1e-3, 5.0, f"damping ratio of the torsional mode{at}"),
+            _p(f"{effect}_load_fraction", "1", 0.5, 0.05, 0.95,
+               "load-side share of the inertia J (the rest turns with the motor)"))
+
 #: The seven effects of MODEL_SPEC.md for the EMA concepts (htls, lths), then further forms of
 #: their families, in kernel order.
 CATALOGUE: dict[str, Effect] = {e.name: e for e in (
@@ -351,11 +362,7 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (
         "shaft_compliance",
         "torsional spring and damper between motor and drive train (two-inertia mode of period T, "
         "damping ratio ζ)",
-        (_p("shaft_compliance_period", "s", 0.03, 0.0, 1.0,
-            "period 2π/ω_n of the torsional mode (stiffness k = J_red ω_n², rigid at 0)"),
-         _p("shaft_compliance_zeta", "1", 0.05, 1e-3, 5.0, "damping ratio of the torsional mode"),
-         _p("shaft_compliance_load_fraction", "1", 0.5, 0.05, 0.95,
-            "load-side share of the inertia J (the rest turns with the motor)")),
+        _torsional_mode("shaft_compliance"),
         start={"shaft_compliance_period": 0.0044, "shaft_compliance_zeta": 0.05, "shaft_compliance_load_fraction": 0.5},
         off={"shaft_compliance_period": 0.0, "shaft_compliance_zeta": 0.05, "shaft_compliance_load_fraction": 0.5},
         signature=("high_acceleration", "reversal", "periodic"), magnitude="shaft_compliance_period",
@@ -546,11 +553,7 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (
         "shaft_compliance_loaded",
         "torsional spring and damper between motor and drive train whose stiffness grows with the torque "
         "it carries (gear teeth and bearings stiffen under contact load): k = k_0 (1 + h |M| / M_ref)",
-        (_p("shaft_compliance_loaded_period", "s", 0.03, 0.0, 1.0,
-            "period 2π/ω_n of the torsional mode unloaded (stiffness k_0 = J_red ω_n², rigid at 0)"),
-         _p("shaft_compliance_loaded_zeta", "1", 0.05, 1e-3, 5.0, "damping ratio of the unloaded torsional mode"),
-         _p("shaft_compliance_loaded_load_fraction", "1", 0.5, 0.05, 0.95,
-            "load-side share of the inertia J (the rest turns with the motor)"),
+        (*_torsional_mode("shaft_compliance_loaded", "unloaded"),
          _p("shaft_compliance_loaded_hardening", "1", 0.0, 0.0, 3.0,
             "h: relative stiffness gain at the reference torque M_ref")),
         start={"shaft_compliance_loaded_period": 0.0044, "shaft_compliance_loaded_zeta": 0.05,
