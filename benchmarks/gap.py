@@ -55,6 +55,7 @@ import datetime
 import hashlib
 import json
 import os
+import platform
 import sys
 import time
 from pathlib import Path
@@ -238,6 +239,7 @@ def freeze(path, *, root: Path = ROOT, development: list[int] | None = None, eva
     protocol = {
         "frozen": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "sources": {"sha256": combined, "files": each},
+        "libraries": library_versions(),
         **({} if method_version is None else {"method_version": method_version}),
         **_frozen_method(None if method_version is None else method_settings(method_version)),
         "selfcheck": {**PROTOCOL_SELFCHECK,
@@ -317,15 +319,41 @@ def attest_equivalent(path, n_cases: int, *, block: str = "evaluation", out_dir:
               flush=True)
         if differences:
             raise SystemExit(f"{outcome.case.case_id} differs from its stored outcome ({', '.join(differences[:5])}): "
-                             "the change alters results; re-freeze (a new evaluation block) instead")
+                             "the change alters results; re-freeze (a new evaluation block) instead"
+                             + _libraries_note(protocol))
         compared += _count_values(stored)
         cases.append(outcome.case.case_id)
     entry = {"sha256": combined, "files": each,
              "attested": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
-             "cases_rerun": cases, "values_identical": compared}
+             "cases_rerun": cases, "values_identical": compared, "libraries": library_versions()}
     protocol["sources"].setdefault("equivalent", []).append(entry)
     path.write_text(PROTOCOL_HEADER + yaml.safe_dump(protocol, sort_keys=False, width=110), encoding="utf-8")
     return entry
+
+
+def library_versions() -> dict[str, str]:
+    """Versions of the libraries whose arithmetic the stored outcomes carry (a fit's last digits
+    move with them: numpy 2.4.6 / scipy 1.17.1 / numba 0.68.1 reproduce a block-5203 outcome of
+    other versions to about 1e-5 relative only)."""
+    import numba
+    import scipy
+    return {"python": platform.python_version(), "numpy": np.__version__, "scipy": scipy.__version__,
+            "numba": numba.__version__}
+
+
+def _libraries_note(protocol: dict) -> str:
+    """What a refused attestation should say about the environment: the libraries recorded with
+    the accepted sources (the freeze and each attestation) against this run's."""
+    recorded = [protocol.get("libraries")] + [e.get("libraries") for e in protocol["sources"].get("equivalent") or []]
+    recorded = [r for r in recorded if r]
+    current = library_versions()
+    if not recorded:
+        return (f"; the protocol records no library versions for its stored outcomes (this run: "
+                f"{', '.join(f'{k} {v}' for k, v in current.items())}), so a difference can also come from them")
+    if current in recorded:
+        return ""
+    return (f"; the stored outcomes come from {recorded[-1]}, this run uses {current}: re-run both sources in one "
+            "environment to tell a code change from a library change")
 
 
 def _count_values(value) -> int:

@@ -343,6 +343,11 @@ def test_a_refactor_is_attested_only_when_stored_outcomes_rerun_identically(tmp_
     monkeypatch.setattr(bench, "run_case", lambda case, settings=None: _fake_run_case(case))
     entry = bench.attest_equivalent(protocol, 2, out_dir=out, root=root)
     assert len(entry["cases_rerun"]) == 2 and entry["values_identical"] > 10
+    # the stored numbers carry the libraries' arithmetic: both the freeze and the attestation say which
+    assert entry["libraries"] == bench.library_versions() == bench.load_protocol(protocol)["libraries"]
+    assert bench._libraries_note(bench.load_protocol(protocol)) == ""
+    assert "no library versions" in bench._libraries_note({"sources": {}})
+    assert "re-run both sources" in bench._libraries_note({"sources": {}, "libraries": {"numpy": "1.0"}})
     attested = bench.load_protocol(protocol)
     assert attested["sources"]["sha256"] == frozen["sources"]["sha256"]              # the frozen hash stays
     assert bench.check_sources(attested, root=root) is None
