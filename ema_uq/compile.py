@@ -7,7 +7,10 @@ kernel family), and parallel jobs pay it at once. :func:`compile_kernels` calls 
 point on a few samples: each concept with each integrator (``rk4``, ``dopri5``, ``hybrid``;
 with and without shared step sequences), the concept augmented with each of its catalogue
 effects, and the gap self-check's independent simulator. numba compiles a kernel with its
-whole call tree on its first call, so a short run reaches every branch.
+whole call tree on its first call, so a short run reaches every branch. The RK4 kernels
+compiled for one effect set (``simulate/specialise.py``) are not made here: there is one per
+set a diagnosis tries, pairs included, and the first process that runs a set often compiles
+its kernel into the same cache.
 """
 from __future__ import annotations
 

@@ -31,6 +31,7 @@ from .dispatch import (EFFECT_KERNELS, HTLS_EFFECTS_KERNEL, HTLS_KERNEL, LTHS_EF
 from .integrators import (DP_A, DP_DIVERGED, DP_E, _dopri_batch, _dopri_batch_flags,  # noqa: F401
                           _dopri_batch_shared, _dopri_batch_shared_flags, _dopri_one, _dopri_one_nominal, _dp_error,
                           _dp_stage_state, _integrate_batch, _integrate_batch_flags)
+from .specialise import run_rk4_effects
 from .linear import (ZOH_CHECKS, _dp_stability_radius, _dp_stable_steps, _hybrid_setup,  # noqa: F401
                      _zoh_propagators, stable_steps)
 
@@ -163,9 +164,10 @@ def simulate_batch(
     kernel_consts = model.kernel_constants(consts)
     # a nominal model runs the entries compiled for the nominal equations, a model with effects
     # the entries that take its effects' bit set at run time (one compiled kernel for all sets)
+    # or, for RK4 once the set has earned it, the entry compiled for its set (specialise.py)
     prefix = (model_id,) if nominal else (model_id, flags)
     if method == "rk4":
-        kernel = _integrate_batch if nominal else _integrate_batch_flags
+        kernel = _integrate_batch if nominal else run_rk4_effects
         kernel(*prefix, thetas, kernel_consts, inputs, x0, h, n_sub, out)
     else:  # no linear regime is declared for the augmented models: "hybrid" is Dormand-Prince there
         args = (*prefix, thetas, kernel_consts, inputs, x0, dt, tol, error_scales(model, thetas),
