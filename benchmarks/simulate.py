@@ -18,7 +18,9 @@ subprocesses with an empty cache directory (first process compiles, second reuse
 
 With ``--effects``: the cost of one run of each effect's kernel (each catalogue effect alone,
 at its nominal values) relative to the nominal kernel, per concept and integrator, on one
-thread; ``--versus DIR`` measures a second package root (e.g. a worktree of an earlier commit)
+thread; RK4 twice: on the one kernel for every effect set ("rk4") and on the kernel compiled
+for each set ("rk4-own", ``ema_uq/simulate/specialise.py``; on an empty cache that compiles
+about 13 s per effect); ``--versus DIR`` measures a second package root (e.g. a worktree of an earlier commit)
 interleaved with this one and prints the two side by side.
 
 Usage: python benchmarks/simulate.py [--quick] [--effects [--versus DIR]]
@@ -157,14 +159,22 @@ for concept in concepts:
     base = get_model(concept)
     models = {"nominal": base, **{name: base.with_effects([name]) for name in CATALOGUE}}
     for method in methods:
+        if method == "rk4-own":  # RK4 on the kernel compiled for each effect set (after the generic rows)
+            try:
+                from ema_uq.simulate import specialise
+            except ImportError:  # a package root from before the specialised kernels
+                continue
+            specialise.SPECIALISE_AFTER_S = 0.0
+        integrator = method.split("-")[0]
         for label, model in models.items():  # compile and warm up first
-            simulate_batch(model, model.parameters.nominal, ex.time, ex.input_matrix(model), integrator=method)
+            for _ in range(2):
+                simulate_batch(model, model.parameters.nominal, ex.time, ex.input_matrix(model), integrator=integrator)
         best = {label: np.inf for label in models}
         for _ in range(repeats):  # interleaved: every kernel once per round, best of the rounds
             for label, model in models.items():
                 theta, inputs = model.parameters.nominal, ex.input_matrix(model)
                 t = time.perf_counter()
-                simulate_batch(model, theta, ex.time, inputs, integrator=method)
+                simulate_batch(model, theta, ex.time, inputs, integrator=integrator)
                 best[label] = min(best[label], time.perf_counter() - t)
         for label, seconds in best.items():
             rows[f"{concept}|{method}|{label}"] = seconds
@@ -183,8 +193,11 @@ def effect_costs(concepts, methods, repeats: int, rounds: int, roots: dict[str, 
             env = dict(os.environ, NUMBA_NUM_THREADS="1")
             if root:
                 env["PYTHONPATH"] = os.pathsep.join(filter(None, (root, env.get("PYTHONPATH", ""))))
+            # run outside the repository: ``python -c`` puts the working directory first on the
+            # path, before PYTHONPATH, so from the checkout every root would import the checkout
             res = subprocess.run([sys.executable, "-c", _EFFECT_COSTS, ",".join(concepts), ",".join(methods),
-                                  str(repeats)], env=env, check=True, capture_output=True, text=True)
+                                  str(repeats)], env=env, check=True, capture_output=True, text=True,
+                                 cwd=tempfile.gettempdir())
             for key, seconds in json.loads(res.stdout.strip().splitlines()[-1]).items():
                 best[label][key] = min(best[label].get(key, np.inf), seconds)
     return best
@@ -229,7 +242,7 @@ def main(argv=None) -> None:
             roots = {"versus": os.path.abspath(args.versus), "this": os.path.abspath(os.path.join(HERE, os.pardir))}
         repeats, rounds = (2, 1) if args.quick else (3, 3)
         print("load average at start (1, 5, 15 min): %.2f %.2f %.2f" % os.getloadavg())
-        print_effect_costs(effect_costs(("htls", "lths"), ("rk4", "dopri5"), repeats, rounds, roots))
+        print_effect_costs(effect_costs(("htls", "lths"), ("rk4", "rk4-own", "dopri5"), repeats, rounds, roots))
         print("load average at end (1, 5, 15 min): %.2f %.2f %.2f" % os.getloadavg())
         return
     n_peer, n_single, repeats = (1, 5, 1) if args.quick else (3, 20, 5)
