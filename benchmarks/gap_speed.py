@@ -14,8 +14,10 @@ and version 5 (each family by its nesting form only, the compliance's a stiffnes
 the torque carried, at the converged step: four candidates).
 Beside them the figures the performance issue recorded before the
 work (HT/LS: 92 s, 636 simulations, on the code of that time) and its targets (HT/LS <= 20 s,
-LT/HS <= 45 s on one core). A warm-up diagnosis on a short record runs first so kernel
-compilation and cache loading are excluded.
+LT/HS <= 45 s on one core). A warm-up diagnosis runs first so the generic kernels' compilation
+and cache loading are excluded; the RK4 kernels compiled per effect set
+(``ema_uq/simulate/specialise.py``) compile in the first run that uses each set for long enough
+(about 13 s each) and load from the cache after that, so the figures to quote are a second run's.
 
 Usage: python benchmarks/gap_speed.py [--concept htls|lths|both] [--seed N]
 """
