@@ -155,16 +155,24 @@ from ema_uq.models.effects import CATALOGUE
 concepts, methods, repeats = sys.argv[1].split(","), sys.argv[2].split(","), int(sys.argv[3])
 ex = deploy_retract()
 rows = {}
+try:
+    from ema_uq.simulate import specialise
+    own_kernel_cached = specialise._cached
+except ImportError:  # a package root from before the kernels compiled per effect set
+    specialise = None
 for concept in concepts:
     base = get_model(concept)
     models = {"nominal": base, **{name: base.with_effects([name]) for name in CATALOGUE}}
     for method in methods:
-        if method == "rk4-own":  # RK4 on the kernel compiled for each effect set (after the generic rows)
-            try:
-                from ema_uq.simulate import specialise
-            except ImportError:  # a package root from before the specialised kernels
-                continue
-            specialise.SPECIALISE_AFTER_S = 0.0
+        if specialise is not None:  # "rk4": the one kernel for every set; "rk4-own": each set's own
+            own = method == "rk4-own"
+            specialise.SPECIALISE_AFTER_S = 0.0 if own else float("inf")
+            specialise._cached = own_kernel_cached if own else (lambda signature: False)
+            specialise._PROBED.clear()
+            if not own:
+                specialise._ENTRIES.clear()
+        elif method == "rk4-own":
+            continue
         integrator = method.split("-")[0]
         for label, model in models.items():  # compile and warm up first
             for _ in range(2):
