@@ -70,7 +70,9 @@ def _entry(model_id: int, flags: int, args):
 
 def run_rk4_effects(model_id: int, flags: int, *args) -> None:
     """``_integrate_batch_flags(model_id, flags, *args)``, on the set's own kernel when it has one
-    or has earned it (module docstring)."""
+    or has earned it (module docstring). ``args`` as ``simulate_batch`` passes them (C-contiguous
+    float64 arrays, a float step, an int count): the compiled entry point is called directly and
+    takes exactly the types it was compiled for."""
     entry = _entry(model_id, flags, args)
     if entry is not None:
         entry(model_id, flags, *args)
