@@ -11,7 +11,8 @@ self-check worker): the method without the model-form allowance (version 1), wit
 brings faster dynamics (version 3: the ``converged_step`` option, tried and not adopted), and
 version 4 (version 2 with the spanning forms of the same families beside them: seven candidates)
 and version 5 (each family by its nesting form only, the compliance's a stiffness that grows with
-the torque carried, at the converged step: four candidates).
+the torque carried, at the converged step: four candidates) and version 6 (version 5 with each fit
+stopped once the decrease of 2V still to come is below 0.1).
 Beside them the figures the performance issue recorded before the
 work (HT/LS: 92 s, 636 simulations, on the code of that time) and its targets (HT/LS <= 20 s,
 LT/HS <= 45 s on one core). A warm-up diagnosis runs first so the generic kernels' compilation
@@ -19,7 +20,7 @@ and cache loading are excluded; the RK4 kernels compiled per effect set
 (``ema_uq/simulate/specialise.py``) compile in the first run that uses each set for long enough
 (about 13 s each) and load from the cache after that, so the figures to quote are a second run's.
 
-Usage: python benchmarks/gap_speed.py [--concept htls|lths|both] [--seed N]
+Usage: python benchmarks/gap_speed.py [--concept htls|lths|both] [--seed N] [--versions 5,6]
 """
 from __future__ import annotations
 
@@ -34,12 +35,12 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 from ema_uq.gap.attribute import diagnose  # noqa: E402 - after the thread settings
 from ema_uq.gap.candidates import offered_forms  # noqa: E402
 from ema_uq.models import get_model  # noqa: E402
-from ema_uq.gap.strategy import DiagnosisSettings  # noqa: E402
 from ema_uq.gap.variants import make_records  # noqa: E402
+from gap import method_settings  # noqa: E402 - benchmarks/gap.py
 
 CANDIDATES = ("stribeck", "sensor_delay", "shaft_compliance", "load_dependent_friction")
 FAMILIES = set(CANDIDATES)
-VERSIONS = (1, 2, 3, 4, 5)
+VERSIONS = (1, 2, 3, 4, 5, 6)
 VARIANT, PARAMS = "stribeck_rational", {"ratio": 1.0, "speed": 1.5}
 BEFORE = {"htls": (92.0, 636)}            # the issue's figures before the work (s, simulations)
 TARGET_S = {"htls": 20.0, "lths": 45.0}
@@ -47,10 +48,8 @@ TARGET_S = {"htls": 20.0, "lths": 45.0}
 
 def one(concept: str, seed: int, version: int) -> dict:
     estimation, validation, validation2, _ = make_records(concept, VARIANT, PARAMS, seed=seed)
-    settings = DiagnosisSettings(model_form_allowance=version >= 2, converged_step=version in (3, 5),
-                                 spanning_forms=version >= 4, operating_point_forms=version >= 5,
-                                 nested_forms=version < 5)
-    # the forms of the four families that the version offers (benchmarks/gap.py, method_settings)
+    settings = method_settings(version)
+    # the forms of the four families that the version offers
     candidates = [name for name, effect in offered_forms(get_model(concept).effect_catalogue, settings).items()
                   if effect.family in FAMILIES]
     t0 = time.perf_counter()
@@ -65,9 +64,14 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--concept", choices=("htls", "lths", "both"), default="both")
     parser.add_argument("--seed", type=int, default=7)
+    parser.add_argument("--versions", default=",".join(map(str, VERSIONS)),
+                        help="comma-separated method versions to measure (default: all)")
     args = parser.parse_args()
     concepts = ("htls", "lths") if args.concept == "both" else (args.concept,)
-    versions = VERSIONS
+    versions = tuple(int(v) for v in args.versions.split(","))
+    unknown = sorted(set(versions) - set(VERSIONS))
+    if unknown:
+        raise SystemExit(f"--versions: no method version {unknown[0]}; choose from {', '.join(map(str, VERSIONS))}")
     for concept in concepts:
         one(concept, args.seed, 2)                            # warm-up: compile or load every kernel used
         runs = {v: one(concept, args.seed, v) for v in versions}

@@ -27,6 +27,7 @@ from .holdout import GapError
 from .localize import ResidualRecord
 from .predictable import state_predictable
 from .result import CandidateScore
+from .strategy import DECISION_TOLERANCE
 from .structure import cell_energies, cell_masks
 from .verdict import passes as _passes, reproducible_shrink as _reproducible_shrink
 
@@ -140,9 +141,18 @@ def _screened_fit(run: _Diagnosis, problem: FitProblem, augmented, names: Sequen
             fit_problem = FitProblem(model=augmented,
                                      parameters=augmented.parameters.freeing_only(keep + allowed + names),
                                      **run.problem_args)
-    fit = _robust_estimate(fit_problem, start, Settings(tolerance=settings.tolerance, max_iterations=cap))
+    fit = _robust_estimate(fit_problem, start, _fit_settings(settings, cap))
     fit.n_simulations += n_extra
     return fit
+
+
+def _fit_settings(settings, max_iterations: int) -> Settings:
+    """The estimator settings of one fit of the diagnosis under ``settings`` (a
+    :class:`DiagnosisSettings`; ``decision_fits``: stop at :data:`DECISION_TOLERANCE`, no
+    identifiable combinations)."""
+    lean = bool(settings.decision_fits)
+    return Settings(tolerance=settings.tolerance, max_iterations=max_iterations,
+                    decrease_tolerance=DECISION_TOLERANCE if lean else None, combinations=not lean)
 
 
 # ----------------------------------------------------------------------------------------
@@ -186,8 +196,7 @@ def _fit_nominal(run: _Diagnosis):
         run.say(f"nominal ML fit of {base.name} on {problem.n_samples} samples x {len(d.channels)} channels"
                 + (f" ({', '.join(run.fixed)} held at nominal: these channels cannot determine them)"
                    if run.fixed else ""))
-        nominal = _robust_estimate(problem, start, Settings(tolerance=settings.tolerance,
-                                                            max_iterations=settings.nominal_max_iterations))
+        nominal = _robust_estimate(problem, start, _fit_settings(settings, settings.nominal_max_iterations))
     run.n_sims += nominal.n_simulations
     est_records = run.records(base, nominal.estimate, held=False)
     held_records = run.records(base, nominal.estimate, held=True)

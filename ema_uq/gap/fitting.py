@@ -171,9 +171,14 @@ def _robust_estimate(problem: FitProblem, start: np.ndarray, settings: Settings)
     exhausted while the model still promised a decrease: on the LT/HS rig sensors a nominal fit
     stopped after 2 of 30 iterations 12 500 short in 2V of its minimum, and every candidate was
     then credited with finishing that descent) is continued by Levenberg-Marquardt for the
-    remaining iterations."""
+    remaining iterations. A start whose information matrix Gauss-Newton found singular goes
+    straight to the Levenberg-Marquardt fit that holds the undetermined parameters: a plain
+    Levenberg-Marquardt attempt would compute the same matrix at the same start and stop there
+    too (a Jacobian's simulations for nothing; neither attempt's simulations are counted)."""
     try:
         fit = estimate(problem, method="gn", start=start, settings=settings)
+    except SingularInformationError:
+        return estimate(problem, method="lm", start=start, settings=settings, unidentifiable="fix")
     except (IdentificationError, np.linalg.LinAlgError):
         return _levenberg_marquardt(problem, start, settings)
     if fit.converged or fit.iterations >= settings.max_iterations:

@@ -28,6 +28,13 @@ from .structure import StructureSettings
 from .verdict import Thresholds
 
 
+#: ``DiagnosisSettings.decision_fits``: the decrease of 2V still to come at which a fit stops, a
+#: hundredth of the evidence margin (:data:`ema_uq.gap.verdict.MARGIN_EVIDENCE`) and a 250th of
+#: ``Thresholds.bic_min``; a fit stopped there sits within about 0.3 Cramér-Rao σ of its optimum
+#: along its least determined direction (2ΔV = δᵀ F δ)
+DECISION_TOLERANCE = 0.1
+
+
 @dataclass(frozen=True)
 class DiagnosisSettings:
     """Fit knobs of :func:`~ema_uq.gap.diagnose` (a strategy carries its concept's defaults).
@@ -55,7 +62,13 @@ class DiagnosisSettings:
     (:data:`ema_uq.gap.candidates.OPERATING_POINT_FORMS`: a ripple share with the motor torque, a
     joint angle along the stroke, a stiffness with the torque carried; method version 5);
     ``nested_forms``: offer a form that another offered form nests (``Effect.nests``; method
-    version 5 offers the nesting forms only: the same mechanisms, fewer refits).
+    version 5 offers the nesting forms only: the same mechanisms, fewer refits);
+    ``decision_fits``: fit at the precision the verdict reads (method version 6): each fit also
+    stops once the decrease of 2V still to come (the last two iterations' decreases extrapolated as
+    a geometric series) is below :data:`DECISION_TOLERANCE`, in the units of 2 ln L in which ΔBIC,
+    the held-out gain and the evidence margin are read, and a fit that holds parameters the data
+    cannot determine does not compute the identifiable combinations of the held groups (reported
+    by ``identify``, read by no verdict).
     """
 
     holdout_fraction: float = 0.3
@@ -71,13 +84,14 @@ class DiagnosisSettings:
     spanning_forms: bool = False
     operating_point_forms: bool = False
     nested_forms: bool = True
+    decision_fits: bool = False
 
     def __post_init__(self) -> None:
         if not isinstance(self.model_form_allowance, (bool, np.bool_)):
             raise AllowanceError(f"model_form_allowance must be true or false, got {self.model_form_allowance!r}")
         if not isinstance(self.converged_step, (bool, np.bool_)):
             raise ValueError(f"converged_step must be true or false, got {self.converged_step!r}")
-        for option in ("spanning_forms", "operating_point_forms", "nested_forms"):
+        for option in ("spanning_forms", "operating_point_forms", "nested_forms", "decision_fits"):
             if not isinstance(getattr(self, option), (bool, np.bool_)):
                 raise ValueError(f"{option} must be true or false, got {getattr(self, option)!r}")
 

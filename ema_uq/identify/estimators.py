@@ -35,6 +35,21 @@ class Settings:
     #: Cramér-Rao bounds at the estimate (central differences, 2 x free simulations); off for
     #: inner fits whose bounds nobody reads (profile likelihoods), where they cost ~40 %
     cramer_rao: bool = True
+    #: also stop when the decrease of 2V still to come, extrapolated from the last two accepted
+    #: iterations as a geometric series (Gauss-Newton converges linearly on a residual that is
+    #: not small), is below this, in units of 2 ln L (those of BIC and of evidence margins); for
+    #: callers that use V only through differences far larger than it. None: ``tolerance`` alone
+    decrease_tolerance: float | None = None
+    #: with ``unidentifiable="fix"``: report the identifiable combination of each held group
+    #: (:func:`ema_uq.identify.reduction.identifiable_combinations`: 2 x free + 1 simulations at
+    #: the estimate); off for callers that read only the fit
+    combinations: bool = True
+
+    def __post_init__(self) -> None:
+        if self.decrease_tolerance is not None and not (np.isfinite(self.decrease_tolerance)
+                                                        and self.decrease_tolerance > 0):
+            raise IdentificationError(f"decrease_tolerance must be a positive number or None, "
+                                      f"got {self.decrease_tolerance!r}")
 
 
 class SingularInformationError(IdentificationError):
@@ -165,6 +180,16 @@ def _relative_change(old: _State, new: _State, n: int) -> float:
     return abs(np.expm1((old.objective - new.objective) * 2.0 / n))
 
 
+def _remaining_decrease(previous: float | None, last: float) -> float:
+    """The decrease of 2V still to come after accepted decreases ``previous`` then ``last``
+    (each of 2V), as the geometric series of their ratio; inf when the ratio is not below 1 or
+    there is no previous decrease."""
+    if previous is None or not previous > 0:
+        return float("inf")
+    ratio = last / previous
+    return last * ratio / (1.0 - ratio) if ratio < 1.0 else float("inf")
+
+
 def _record(history: list, iteration: int, state: _State, problem: FitProblem, counter: _Counter, **extra) -> None:
     names = problem.parameters.free_names
     entry = {"iteration": iteration, "cost": float(np.exp(state.log_det_r)), "log_det_R": state.log_det_r,
@@ -256,6 +281,7 @@ def maximum_likelihood(problem: FitProblem, *, method: str = "gn", start: np.nda
     _record(history, 0, state, problem, counter)
     stepper = _gn_step if method == "gn" else _LevenbergMarquardt(settings).step
     converged, message, iteration = False, "maximum number of iterations reached", 0
+    previous_decrease = None
     for iteration in range(1, settings.max_iterations + 1):
         info, grad, sens = _information(problem, state, scale, counter, central=False)
         if iteration == 1:
@@ -277,6 +303,7 @@ def maximum_likelihood(problem: FitProblem, *, method: str = "gn", start: np.nda
             iteration -= 1
             break
         change = _relative_change(state, new, problem.n_samples)
+        decrease = 2.0 * (state.objective - new.objective)
         state = new
         _record(history, iteration, state, problem, counter, relative_change=change, **extra)
         if progress is not None:
@@ -284,6 +311,14 @@ def maximum_likelihood(problem: FitProblem, *, method: str = "gn", start: np.nda
         if change < settings.tolerance:
             converged, message = True, f"|dJ/J| = {change:.2e} < {settings.tolerance:g}"
             break
+        if settings.decrease_tolerance is not None:
+            remaining = _remaining_decrease(previous_decrease, decrease)
+            if remaining < settings.decrease_tolerance:
+                converged, message = True, (f"decrease of 2V still to come {remaining:.2e} < "
+                                            f"{settings.decrease_tolerance:g} (last two: {previous_decrease:.3g}, "
+                                            f"{decrease:.3g})")
+                break
+        previous_decrease = decrease
 
     std = np.zeros(len(params))
     if settings.cramer_rao:

@@ -121,7 +121,7 @@ def estimate_holding_unidentifiable(problem: FitProblem, *, method: str = "gn", 
             if not more or set(more) <= set(held):
                 raise
             held = {**held, **more}
-    combos, n_combos = identifiable_combinations(problem, fit.estimate)
+    combos, n_combos = identifiable_combinations(problem, fit.estimate) if settings.combinations else ([], 0)
     for name in held:
         fit.std[fit.names.index(name)] = np.nan
     fit.unidentifiable, fit.hold_rule, fit.fixed, fit.combinations = "fix", HOLD_RULE, held, combos
