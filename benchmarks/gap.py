@@ -35,7 +35,10 @@ without changing a number (a module split) is attested instead with ``--attest-e
 N outcomes of the evaluation block already computed on the frozen sources are re-run on the
 current ones, and only if every stored value comes out identical is the current hash recorded
 under ``sources.equivalent`` (with the cases re-run), after which the block continues into the
-same outcome folder; any differing value refuses the attestation. The diagnosis settings come
+same outcome folder; any differing value refuses the attestation. Stored values reproduce exactly
+only on the setup (libraries, processor) that computed them: ``--reference REVISION`` compares
+instead with the same cases diagnosed by an accepted revision's sources, checked out and run in
+turn on this machine. The diagnosis settings come
 from the protocol's ``settings``; a protocol frozen before the model-form allowance (method
 version 1, no ``model_form_allowance`` there) runs without it.
 
@@ -46,17 +49,21 @@ Usage: python benchmarks/gap.py [--concept htls|lths|both] [--sensors full reali
                                 [--jobs N] [--chunk I/N] [--results DIR]
        python benchmarks/gap.py --protocol benchmarks/gap_protocol.yaml --freeze [--new-evaluation]
        python benchmarks/gap.py --protocol benchmarks/gap_protocol.yaml --attest-equivalent N [--results DIR]
+                                [--reference REVISION]
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import datetime
 import hashlib
 import json
 import os
 import platform
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -292,12 +299,60 @@ def _differences(a, b, where: str = "") -> list[str]:
     return [] if same else [where or "."]
 
 
-def attest_equivalent(path, n_cases: int, *, block: str = "evaluation", out_dir: Path, root: Path = ROOT) -> dict:
+@contextlib.contextmanager
+def _checkout(revision: str, root: Path = ROOT):
+    """A temporary git worktree of ``revision`` of the repository at ``root`` (removed afterwards);
+    yields (its folder, the revision's full commit id)."""
+    def git(*args: str) -> str:
+        done = subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True, check=False)
+        if done.returncode != 0:
+            raise SystemExit(f"git {' '.join(args)}: {done.stderr.strip() or done.stdout.strip()}")
+        return done.stdout.strip()
+
+    commit = git("rev-parse", "--verify", f"{revision}^{{commit}}")
+    with tempfile.TemporaryDirectory(prefix="attest-") as folder:
+        tree = Path(folder) / "sources"
+        git("worktree", "add", "--detach", str(tree), commit)
+        try:
+            yield tree, commit
+        finally:
+            git("worktree", "remove", "--force", str(tree))
+
+
+#: run in a checkout (its folder the working directory, so that it imports its own package): one
+#: stored case diagnosed by that checkout's code under a protocol's settings, as JSON on stdout
+_REFERENCE_RUN = ("import json, sys; sys.path.insert(0, 'benchmarks'); import gap; "
+                  "from ema_uq.gap.selfcheck import CaseOutcome, run_case; "
+                  "stored = json.load(open(sys.argv[1], encoding='utf-8')); protocol = gap.load_protocol(sys.argv[2]); "
+                  "json.dump(run_case(CaseOutcome.from_json(stored).case, gap.protocol_settings(protocol)).to_json(), "
+                  "sys.stdout)")
+
+
+def _reference_outcome(tree: Path, stored_file: Path, protocol_path: Path) -> dict:
+    """The outcome JSON of the stored case ``stored_file`` diagnosed by the sources checked out at
+    ``tree``, in a process of its own on this machine."""
+    done = subprocess.run([sys.executable, "-c", _REFERENCE_RUN, str(Path(stored_file).resolve()),
+                           str(Path(protocol_path).resolve())], cwd=tree, capture_output=True, text=True,
+                          env={**os.environ, "PYTHONPATH": str(tree)}, check=False)
+    if done.returncode != 0:
+        tail = (done.stderr.strip().splitlines() or ["no output"])[-1]
+        raise SystemExit(f"the reference sources could not diagnose {Path(stored_file).name}: {tail}")
+    return json.loads(done.stdout)
+
+
+def attest_equivalent(path, n_cases: int, *, block: str = "evaluation", out_dir: Path, root: Path = ROOT,
+                      reference: str | None = None) -> dict:
     """Re-run ``n_cases`` outcomes of ``block`` already computed on the frozen sources with the
     current sources and record the current hash as equivalent when every value agrees exactly.
     For changes that move code (a module split) and are meant to compute the same numbers: a
     behaviour change shows as a differing value and is refused, so it needs a re-freeze and a new
-    evaluation block. The cases re-run are ones whose outcomes exist, so nothing new is learnt."""
+    evaluation block. The cases re-run are ones whose outcomes exist, so nothing new is learnt.
+
+    ``reference``: a git revision whose sources hash to a value the protocol accepts. The same
+    cases are then diagnosed by that revision too, in turn on this machine, and compared with the
+    current sources' outcomes instead of the stored ones: the last digits of a fit move with the
+    libraries and the processor, so stored outcomes reproduce exactly only on the setup that
+    computed them, and a comparison on one setup tells a code change from a setup change."""
     path = Path(path)
     protocol = load_protocol(path)
     combined, each = hash_sources(root)
@@ -310,23 +365,39 @@ def attest_equivalent(path, n_cases: int, *, block: str = "evaluation", out_dir:
                          f"between 1 and that number (run some cases of the block on the frozen sources first)")
     # spread over the stored outcomes (they are sorted by concept, sensor set and case)
     picked = [files[round(i * (len(files) - 1) / max(n_cases - 1, 1))] for i in range(n_cases)]
-    compared, cases = 0, []
-    for file in picked:
-        stored = json.loads(file.read_text(encoding="utf-8"))
-        outcome = CaseOutcome.from_json(stored)
-        fresh = run_case(outcome.case, protocol_settings(protocol)).to_json()
-        differences = _differences(stored, fresh)
-        print(f"{outcome.case.case_id}: {'identical' if not differences else 'DIFFERS at ' + ', '.join(differences[:5])}",
-              flush=True)
-        if differences:
-            raise SystemExit(f"{outcome.case.case_id} differs from its stored outcome ({', '.join(differences[:5])}): "
-                             "the change alters results; re-freeze (a new evaluation block) instead"
-                             + _libraries_note(protocol))
-        compared += _count_values(stored)
-        cases.append(outcome.case.case_id)
+    with contextlib.ExitStack() as stack:
+        against = None
+        if reference is not None:
+            tree, commit = stack.enter_context(_checkout(reference, root))
+            against = {"revision": commit, "sha256": hash_sources(tree)[0]}
+            if against["sha256"] not in accepted_hashes(protocol):
+                raise SystemExit(f"revision {reference} ({commit[:12]}) has sources hashing to "
+                                 f"{against['sha256'][:12]}, which the protocol does not accept: give a revision "
+                                 "it was frozen or attested on")
+        compared, cases = 0, []
+        for file in picked:
+            stored = json.loads(file.read_text(encoding="utf-8"))
+            outcome = CaseOutcome.from_json(stored)
+            expected = stored if against is None else _reference_outcome(tree, file, path)
+            fresh = json.loads(json.dumps(run_case(outcome.case, protocol_settings(protocol)).to_json()))
+            differences = _differences(expected, fresh)
+            source = "its stored outcome" if against is None else f"revision {commit[:12]} run here"
+            print(f"{outcome.case.case_id}: "
+                  f"{'identical' if not differences else 'DIFFERS at ' + ', '.join(differences[:5])} (against {source})",
+                  flush=True)
+            if differences:
+                raise SystemExit(f"{outcome.case.case_id} differs from {source} ({', '.join(differences[:5])}): "
+                                 "the change alters results; re-freeze (a new evaluation block) instead"
+                                 + ("" if against is not None else _libraries_note(protocol)
+                                    + "; if the stored outcomes come from another setup (libraries, processor), "
+                                      "compare with a revision the protocol accepts, run here: --reference REVISION"))
+            compared += _count_values(expected)
+            cases.append(outcome.case.case_id)
     entry = {"sha256": combined, "files": each,
              "attested": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
              "cases_rerun": cases, "values_identical": compared, "libraries": library_versions()}
+    if against is not None:
+        entry["against_revision"] = against
     protocol["sources"].setdefault("equivalent", []).append(entry)
     path.write_text(PROTOCOL_HEADER + yaml.safe_dump(protocol, sort_keys=False, width=110), encoding="utf-8")
     return entry
@@ -507,11 +578,20 @@ def main() -> None:
         parser.add_argument("--attest-equivalent", type=int, metavar="N",
                             help="re-run N stored evaluation outcomes on the current sources; if every value is "
                                  "identical, record the current sources' hash as equivalent to the frozen one")
+        parser.add_argument("--reference", metavar="REVISION",
+                            help="with --attest-equivalent: compare with the same cases diagnosed by this git "
+                                 "revision (sources the protocol accepts) on this machine, not with the stored "
+                                 "outcomes (their last digits carry the setup that computed them)")
         args = parser.parse_args()
+        if args.reference and args.attest_equivalent is None:
+            parser.error("--reference goes with --attest-equivalent N")
         if args.attest_equivalent is not None:
-            entry = attest_equivalent(args.protocol, args.attest_equivalent, out_dir=Path(args.results))
+            entry = attest_equivalent(args.protocol, args.attest_equivalent, out_dir=Path(args.results),
+                                      reference=args.reference)
+            against = entry.get("against_revision")
             print(f"attested {entry['sha256'][:12]} equivalent to the frozen sources: {len(entry['cases_rerun'])} "
-                  f"case(s) re-run, {entry['values_identical']} values identical")
+                  f"case(s) re-run, {entry['values_identical']} values identical"
+                  + (f" to revision {against['revision'][:12]} run on this machine" if against else ""))
             return
         if args.freeze == bool(args.block):
             parser.error("give either --freeze, --block or --attest-equivalent")

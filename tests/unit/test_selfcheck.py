@@ -2,9 +2,11 @@
 scatter/gather and the frozen protocol of benchmarks/gap.py."""
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import json
 import shutil
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -353,6 +355,82 @@ def test_a_refactor_is_attested_only_when_stored_outcomes_rerun_identically(tmp_
     assert bench.check_sources(attested, root=root) is None
     monkeypatch.setattr(selfcheck, "run_case", lambda *a, **k: pytest.fail("diagnosed a stored case again"))
     bench.protocol_main(protocol, "evaluation", root=root, out_dir=out)              # continues the same outcomes
+
+
+def test_an_attestation_against_a_revision_compares_both_sources_run_on_this_machine(tmp_path, monkeypatch):
+    """Stored outcomes carry the last digits of the setup that computed them; --reference compares
+    the current sources with an accepted revision run here instead, and refuses a revision the
+    protocol does not accept or any value that differs between the two."""
+    bench = _bench()
+    accepted = _copy_of_the_sources(bench, tmp_path / "accepted")        # what a checkout of the revision holds
+    root = _copy_of_the_sources(bench, tmp_path / "repo")
+    protocol = tmp_path / "protocol.yaml"
+    frozen = bench.freeze(protocol, root=root, development=[11], evaluation=[5201])
+    frozen["selfcheck"].update(concepts=["htls"], sensors=["realistic"], kinds=["none"], none_per_set=2)
+    protocol.write_text(bench.yaml.safe_dump(frozen), encoding="utf-8")
+    monkeypatch.setattr(selfcheck, "run_case", lambda case, settings=None: _fake_run_case(case))
+    out = tmp_path / "results"
+    bench.protocol_main(protocol, "evaluation", root=root, out_dir=out)
+    with open(root / "ema_uq" / "gap" / "attribute.py", "a", encoding="utf-8") as fh:
+        fh.write("\n# moved code, same numbers\n")
+
+    def here(case, settings=None):          # this setup rounds differently from the one that stored them
+        outcome = _fake_run_case(case)
+        outcome.gap_before = outcome.gap_before * (1 + 1e-9)
+        return outcome
+
+    monkeypatch.setattr(bench, "run_case", here)
+    with pytest.raises(SystemExit, match="alters results.*--reference REVISION"):
+        bench.attest_equivalent(protocol, 2, out_dir=out, root=root)
+
+    trees = {"accepted": accepted, "other": _copy_of_the_sources(bench, tmp_path / "other")}
+    with open(trees["other"] / "ema_uq" / "gap" / "verdict.py", "a", encoding="utf-8") as fh:
+        fh.write("\n# another method\n")
+
+    @contextlib.contextmanager
+    def checkout(revision, root=None):
+        yield trees[revision], revision.ljust(40, "0")
+
+    def reference_run(runner):
+        def run(tree, stored_file, protocol_path):
+            stored = json.loads(Path(stored_file).read_text(encoding="utf-8"))
+            return json.loads(json.dumps(runner(selfcheck.CaseOutcome.from_json(stored).case).to_json()))
+        return run
+
+    monkeypatch.setattr(bench, "_checkout", checkout)
+    monkeypatch.setattr(bench, "_reference_outcome", reference_run(here))
+    with pytest.raises(SystemExit, match="does not accept"):
+        bench.attest_equivalent(protocol, 2, out_dir=out, root=root, reference="other")
+    monkeypatch.setattr(bench, "_reference_outcome", reference_run(_fake_run_case))   # the code changed the numbers
+    with pytest.raises(SystemExit, match="differs from revision accepted0"):
+        bench.attest_equivalent(protocol, 2, out_dir=out, root=root, reference="accepted")
+    assert bench.check_sources(bench.load_protocol(protocol), root=root) is not None    # nothing recorded
+    monkeypatch.setattr(bench, "_reference_outcome", reference_run(here))
+    entry = bench.attest_equivalent(protocol, 2, out_dir=out, root=root, reference="accepted")
+    assert entry["against_revision"] == {"revision": "accepted".ljust(40, "0"), "sha256": frozen["sources"]["sha256"]}
+    assert len(entry["cases_rerun"]) == 2 and entry["values_identical"] > 10
+    assert bench.check_sources(bench.load_protocol(protocol), root=root) is None
+
+
+def test_a_checkout_is_a_temporary_worktree_of_the_revision(tmp_path):
+    bench = _bench()
+    repo = tmp_path / "repo"
+    repo.mkdir()
+    git = ["git", "-C", str(repo), "-c", "user.name=t", "-c", "user.email=t@t"]
+    subprocess.run(git[:3] + ["init", "-q"], check=True)
+    (repo / "a.txt").write_text("one", encoding="utf-8")
+    subprocess.run(git + ["add", "a.txt"], check=True)
+    subprocess.run(git + ["commit", "-qm", "one"], check=True)
+    (repo / "a.txt").write_text("two", encoding="utf-8")
+    with bench._checkout("HEAD", repo) as (tree, commit):
+        assert (tree / "a.txt").read_text(encoding="utf-8") == "one" and len(commit) == 40
+    assert not tree.exists()
+    with pytest.raises(SystemExit, match="git rev-parse"):
+        with bench._checkout("no-such-revision", repo):
+            pass
+    # a checkout that cannot diagnose says so in one line
+    with pytest.raises(SystemExit, match="could not diagnose x.json"):
+        bench._reference_outcome(tmp_path, tmp_path / "x.json", tmp_path / "p.yaml")
 
 
 def test_unseen_cases_are_new_records_of_the_unseen_variants_only():
