@@ -46,8 +46,9 @@ class Settings:
     combinations: bool = True
 
     def __post_init__(self) -> None:
-        if self.decrease_tolerance is not None and not (np.isfinite(self.decrease_tolerance)
-                                                        and self.decrease_tolerance > 0):
+        value = self.decrease_tolerance
+        if value is not None and not (isinstance(value, (int, float, np.floating)) and not isinstance(value, bool)
+                                      and np.isfinite(value) and value > 0):
             raise IdentificationError(f"decrease_tolerance must be a positive number or None, "
                                       f"got {self.decrease_tolerance!r}")
 

@@ -43,7 +43,7 @@ def test_remaining_decrease_is_the_geometric_tail_of_the_last_two_decreases():
     assert estimators._remaining_decrease(1.0, 2.0) == np.inf
 
 
-@pytest.mark.parametrize("bad", [0.0, -1.0, float("nan"), float("inf")])
+@pytest.mark.parametrize("bad", [0.0, -1.0, float("nan"), float("inf"), "0.1", True])
 def test_a_decrease_tolerance_that_is_not_a_positive_number_is_refused(bad):
     with pytest.raises(IdentificationError, match="decrease_tolerance must be a positive number"):
         Settings(decrease_tolerance=bad)
