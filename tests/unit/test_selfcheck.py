@@ -318,8 +318,9 @@ def test_protocol_blocks_run_resume_and_print_side_by_side(tmp_path, monkeypatch
     assert json.loads((out / "evaluation.json").read_text())["settings"]["seeds"] == [5201]
 
 
-def test_a_refactor_is_attested_only_when_stored_outcomes_rerun_identically(tmp_path, monkeypatch):
-    bench = _bench()
+def _evaluated_then_refactored(bench, tmp_path, monkeypatch):
+    """A protocol frozen on a copy of the sources, its (small, faked) evaluation block run, then a
+    source file changed without changing a number. Returns (root, protocol file, frozen, outcomes)."""
     root = _copy_of_the_sources(bench, tmp_path / "repo")
     protocol = tmp_path / "protocol.yaml"
     frozen = bench.freeze(protocol, root=root, development=[11], evaluation=[5201])
@@ -330,6 +331,12 @@ def test_a_refactor_is_attested_only_when_stored_outcomes_rerun_identically(tmp_
     bench.protocol_main(protocol, "evaluation", root=root, out_dir=out)
     with open(root / "ema_uq" / "gap" / "attribute.py", "a", encoding="utf-8") as fh:
         fh.write("\n# moved code, same numbers\n")
+    return root, protocol, frozen, out
+
+
+def test_a_refactor_is_attested_only_when_stored_outcomes_rerun_identically(tmp_path, monkeypatch):
+    bench = _bench()
+    root, protocol, frozen, out = _evaluated_then_refactored(bench, tmp_path, monkeypatch)
     assert bench.check_sources(bench.load_protocol(protocol), root=root) is not None
 
     def shifted(case, settings=None):
@@ -363,16 +370,7 @@ def test_an_attestation_against_a_revision_compares_both_sources_run_on_this_mac
     protocol does not accept or any value that differs between the two."""
     bench = _bench()
     accepted = _copy_of_the_sources(bench, tmp_path / "accepted")        # what a checkout of the revision holds
-    root = _copy_of_the_sources(bench, tmp_path / "repo")
-    protocol = tmp_path / "protocol.yaml"
-    frozen = bench.freeze(protocol, root=root, development=[11], evaluation=[5201])
-    frozen["selfcheck"].update(concepts=["htls"], sensors=["realistic"], kinds=["none"], none_per_set=2)
-    protocol.write_text(bench.yaml.safe_dump(frozen), encoding="utf-8")
-    monkeypatch.setattr(selfcheck, "run_case", lambda case, settings=None: _fake_run_case(case))
-    out = tmp_path / "results"
-    bench.protocol_main(protocol, "evaluation", root=root, out_dir=out)
-    with open(root / "ema_uq" / "gap" / "attribute.py", "a", encoding="utf-8") as fh:
-        fh.write("\n# moved code, same numbers\n")
+    root, protocol, frozen, out = _evaluated_then_refactored(bench, tmp_path, monkeypatch)
 
     def here(case, settings=None):          # this setup rounds differently from the one that stored them
         outcome = _fake_run_case(case)
