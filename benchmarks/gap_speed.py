@@ -7,9 +7,10 @@ Four candidates: stribeck, sensor_delay, shaft_compliance, load_dependent_fricti
 
 Columns, measured in this run on this machine, one numba and one BLAS thread (the share of one
 self-check worker): the method without the model-form allowance (version 1), with it
-(version 2, the default) and with it at the model contract's converged RK4 step where no effect
-brings faster dynamics (version 3: the ``converged_step`` option, tried and not adopted), and
-version 4 (version 2 with the spanning forms of the same families beside them: seven candidates)
+(version 2, the default until version 4 passed its evaluation) and with it at the model contract's
+converged RK4 step where no effect brings faster dynamics (version 3: the ``converged_step``
+option, tried and not adopted), and version 4 (the default: version 2 with the spanning forms of
+the same families beside them, seven candidates)
 and version 5 (each family by its nesting form only, the compliance's a stiffness that grows with
 the torque carried, at the converged step: four candidates) and version 6 (version 5 with each fit
 stopped once the decrease of 2V still to come is below 0.1).

@@ -27,7 +27,7 @@ from .holdout import GapError
 from .localize import ResidualRecord
 from .predictable import state_predictable
 from .result import CandidateScore
-from .strategy import DECISION_TOLERANCE
+from .strategy import DECISION_TOLERANCE, DiagnosisSettings
 from .structure import cell_energies, cell_masks
 from .verdict import passes as _passes, reproducible_shrink as _reproducible_shrink
 
@@ -57,6 +57,7 @@ def offered_forms(effect_catalogue, settings=None) -> dict[str, Any]:
     :data:`SPANNING_FORMS` only with ``spanning_forms``, the :data:`OPERATING_POINT_FORMS` only
     with ``operating_point_forms``; without ``nested_forms``, no form that another offered form
     contains (``Effect.nests``: it adds nothing the nesting form cannot fit, and costs a refit)."""
+    settings = DiagnosisSettings() if settings is None else settings
     spanning = bool(getattr(settings, "spanning_forms", False))
     operating_point = bool(getattr(settings, "operating_point_forms", False))
     offered = {name: effect for name, effect in (effect_catalogue or {}).items()

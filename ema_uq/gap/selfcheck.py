@@ -23,7 +23,8 @@ the catalogue later gained forms that mirror some of them (``backlash_compliant`
 ``backlash_output``, ``torque_ripple_harmonics``, ``ujoint_stations``) and fit and verdict
 rules were changed on named cases of the self-check seeds 1 and 2. Figures on those seeds are
 in-sample. The out-of-sample figures are those of the evaluation block of the frozen protocol
-(``benchmarks/gap_protocol.yaml``, ``benchmarks/gap.py --protocol``), run once on frozen
+of the default method (version 4: ``benchmarks/gap_protocol_v4.yaml``, block 5205; version 2's
+``benchmarks/gap_protocol.yaml`` before it; ``benchmarks/gap.py --protocol``), run once on frozen
 sources; the left-out cases ask what the diagnosis says of physics it has no form for, which
 no added form can answer in advance.
 
@@ -96,7 +97,7 @@ from __future__ import annotations
 import json
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import replace
+from dataclasses import asdict, replace
 from multiprocessing import get_context
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
@@ -155,9 +156,17 @@ def case_seed(seed: int, concept: str, sensors: str, slot: int) -> int:
     return int(state.generate_state(1)[0])
 
 
+#: the catalogue the cases are defined on, method version 2's: a left-out case's candidates are part
+#: of its identity (and of every frozen block's outcome files), so they stay put when the default
+#: method changes; :func:`under_catalogue` poses each case to the catalogue of the settings it runs with
+CASE_CATALOGUE_SETTINGS = DiagnosisSettings(spanning_forms=False)
+
+
 def catalogue_families(concept: str, settings: DiagnosisSettings | None = None) -> dict[str, list[str]]:
     """{family: [effect forms]} of the candidate effects ``settings`` offers for the concept
-    (:func:`~ema_uq.gap.candidates.offered_forms`; None: method version 2's catalogue)."""
+    (:func:`~ema_uq.gap.candidates.offered_forms`; None: the catalogue the cases are defined on,
+    :data:`CASE_CATALOGUE_SETTINGS`)."""
+    settings = CASE_CATALOGUE_SETTINGS if settings is None else settings
     out: dict[str, list[str]] = {}
     for name, effect in offered_forms(get_model(concept).effect_catalogue, settings).items():
         out.setdefault(getattr(effect, "family", None) or name, []).append(name)
@@ -171,10 +180,12 @@ def catalogue_without(concept: str, family: str, settings: DiagnosisSettings | N
 
 
 def under_catalogue(case: Case, settings: DiagnosisSettings | None) -> Case:
-    """The case as the catalogue of ``settings`` poses it: a left-out case is built with every form
-    of the other families that method version 2 offers, and gets instead those ``settings`` offers
-    (method version 4's spanning forms beside them, version 5's nesting forms in their place)."""
-    if case.kind != "left_out" or settings is None:
+    """The case as the catalogue of ``settings`` (None: the defaults, which the diagnosis then runs
+    with) poses it: a left-out case is built with every form of the other families that method
+    version 2 offers, and gets instead those ``settings`` offers (method version 4's spanning forms
+    beside them, version 5's nesting forms in their place)."""
+    settings = DiagnosisSettings() if settings is None else settings
+    if case.kind != "left_out":
         return case
     candidates = catalogue_without(case.concept, case.family, settings)
     return case if candidates == tuple(case.candidates) else replace(case, candidates=candidates)
@@ -357,25 +368,40 @@ def _cache_file(cache: Path, case: Case) -> Path:
     return cache / (case.case_id.replace("/", "__") + f"__{case.seed}.json")
 
 
-def _cached(cache: Path | None, case: Case) -> CaseOutcome | None:
+def _settings_record(settings: DiagnosisSettings | None) -> dict[str, Any]:
+    """The settings a cached outcome was diagnosed with (None: the defaults of that code)."""
+    return asdict(DiagnosisSettings() if settings is None else settings)
+
+
+def _cached(cache: Path | None, case: Case, settings: DiagnosisSettings | None = None) -> CaseOutcome | None:
+    """The outcome stored for ``case``, or None: none stored, a torn file, or one diagnosed with
+    other settings (e.g. under an earlier default method; files written before the settings were
+    recorded carry none and are read back, as the folders of the frozen protocols, named by the
+    hash of the sources, need)."""
     if cache is None:
         return None
     path = _cache_file(cache, case)
     if not path.is_file():
         return None
     try:
-        outcome = CaseOutcome.from_json(json.loads(path.read_text(encoding="utf-8")))
+        data = json.loads(path.read_text(encoding="utf-8"))
+        outcome = CaseOutcome.from_json(data)
     except (ValueError, KeyError, TypeError):
         return None                     # a torn file: diagnose again
+    stored, current = data.get("diagnosis_settings") or {}, _settings_record(settings)
+    # a setting added since the file was written is not in it: what it stored must match
+    if any(key not in current or current[key] != value for key, value in stored.items()):
+        return None
     return outcome if outcome.case == case else None
 
 
-def _store(cache: Path | None, outcome: CaseOutcome) -> None:
+def _store(cache: Path | None, outcome: CaseOutcome, settings: DiagnosisSettings | None = None) -> None:
     if cache is None:
         return
     path = _cache_file(cache, outcome.case)
     tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(outcome.to_json(), indent=1), encoding="utf-8")
+    tmp.write_text(json.dumps({**outcome.to_json(), "diagnosis_settings": _settings_record(settings)}, indent=1),
+                   encoding="utf-8")
     tmp.replace(path)
 
 
@@ -403,7 +429,7 @@ def self_check(*, seed: int = DEFAULT_SEED, quick: bool = False, concepts: Seque
     if cache is not None:
         cache.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    found = {i: _cached(cache, every[i]) for i in indices}
+    found = {i: _cached(cache, every[i], settings) for i in indices}
     missing = [i for i in indices if found[i] is None]
     outcomes: dict[int, CaseOutcome] = {}
     done = 0
@@ -413,7 +439,7 @@ def self_check(*, seed: int = DEFAULT_SEED, quick: bool = False, concepts: Seque
         outcome.index = i
         outcomes[i] = outcome
         if fresh:
-            _store(cache, outcome)
+            _store(cache, outcome, settings)
         done += 1
         if progress:
             progress(_progress_line(done, len(indices), outcome) + ("" if fresh else " (cached)"))

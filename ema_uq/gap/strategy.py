@@ -57,7 +57,8 @@ class DiagnosisSettings:
     faster dynamics (``Model.rk4_step``);
     ``spanning_forms``: offer the catalogue's forms that give a family the freedom its mechanism
     has (:data:`ema_uq.gap.candidates.SPANNING_FORMS`: friction per direction, a sensor delay
-    with its filter; method version 4) beside the families' other forms;
+    with its filter; method version 4, the default since it passed its evaluation: off with the
+    other defaults reproduces method version 2) beside the families' other forms;
     ``operating_point_forms``: offer the forms whose magnitude follows the operating point
     (:data:`ema_uq.gap.candidates.OPERATING_POINT_FORMS`: a ripple share with the motor torque, a
     joint angle along the stroke, a stiffness with the torque carried; method version 5);
@@ -81,7 +82,7 @@ class DiagnosisSettings:
     max_effects: int = 1
     model_form_allowance: bool = True
     converged_step: bool = False
-    spanning_forms: bool = False
+    spanning_forms: bool = True
     operating_point_forms: bool = False
     nested_forms: bool = True
     decision_fits: bool = False

@@ -144,7 +144,8 @@ def test_a_version_1_protocol_runs_without_the_allowance(tmp_path):
     assert bench.protocol_settings(committed).model_form_allowance is committed["settings"]["model_form_allowance"]
     # a protocol frozen before the allowance existed has no such setting: it runs as it was frozen
     v1 = {**committed, "settings": {k: v for k, v in committed["settings"].items() if k != "model_form_allowance"}}
-    assert bench.protocol_settings(v1) == DiagnosisSettings(model_form_allowance=False, converged_step=False)
+    assert bench.protocol_settings(v1) == DiagnosisSettings(model_form_allowance=False, converged_step=False,
+                                                          spanning_forms=False)
     # a protocol frozen now records the setting, and runs with it
     frozen = bench.freeze(tmp_path / "protocol.yaml", development=[11], evaluation=[5201])
     assert frozen["settings"]["model_form_allowance"] is True and frozen["settings"]["converged_step"] is False

@@ -241,7 +241,7 @@ def _refuse_compound():
     diagnose([data], candidates=["backlash_compliant"])
 
 
-def test_the_spanning_forms_are_offered_from_method_version_4_only():
+def test_the_spanning_forms_are_offered_from_method_version_4_on_the_default():
     from ema_uq import synthesize
     from ema_uq.experiments import deploy_retract
     from ema_uq.gap import DiagnosisSettings, GapError, diagnose
@@ -250,21 +250,26 @@ def test_the_spanning_forms_are_offered_from_method_version_4_only():
     from ema_uq.gap.selfcheck import build_cases, catalogue_families, under_catalogue
 
     model = get_model("lths")
-    assert not set(SPANNING_FORMS) & set(_catalogue(model))
+    version2 = DiagnosisSettings(spanning_forms=False)
+    assert not set(SPANNING_FORMS) & set(_catalogue(model, version2))
     assert set(SPANNING_FORMS) <= set(_catalogue(model, DiagnosisSettings(spanning_forms=True)))
+    # version 4 is the default (it passed its evaluation): the defaults offer the spanning forms
+    assert DiagnosisSettings().spanning_forms and set(SPANNING_FORMS) <= set(_catalogue(model))
     families = catalogue_families("lths", DiagnosisSettings(spanning_forms=True))
     assert families["stribeck"] == ["stribeck", "stribeck_directional"]
     assert families["sensor_delay"] == ["sensor_delay", "sensor_delay_dispersed"]
+    # the cases are defined on version 2's catalogue, whatever the default
     assert catalogue_families("lths")["stribeck"] == ["stribeck"]
     # a left-out case keeps its family out and gets the other families' spanning forms under version 4
     case = next(c for c in build_cases(["lths"], seed=11, sensors=["full"], kinds=("left_out",))
                 if c.family == "stribeck")
-    assert under_catalogue(case, DiagnosisSettings()) is case
+    assert under_catalogue(case, version2) is case
     wider = under_catalogue(case, DiagnosisSettings(spanning_forms=True))
     assert set(wider.candidates) - set(case.candidates) == {"load_friction_directional", "sensor_delay_dispersed"}
+    assert under_catalogue(case, None) == wider               # None: the defaults the diagnosis runs with
     data = synthesize("lths", deploy_retract().slice(0, 200), noise=0.02, seed=1)
     with pytest.raises(GapError, match="method version 4 on; set DiagnosisSettings"):
-        diagnose([data], candidates=["stribeck_directional"])
+        diagnose([data], candidates=["stribeck_directional"], settings=version2)
 
 
 def test_version_5_offers_each_family_by_the_forms_that_nest_the_others():

@@ -199,6 +199,34 @@ def test_cache_resumes_without_diagnosing_again(monkeypatch, tmp_path):
     assert [o.to_json() for o in whole.outcomes[::2]] == [o.to_json() for o in first.outcomes]
 
 
+def test_cache_does_not_read_back_outcomes_of_other_settings(monkeypatch, tmp_path):
+    """A cache filled under other settings (an earlier default method) is diagnosed again, not
+    counted for the settings of this run; a file written before settings were recorded is read."""
+    from ema_uq.gap.strategy import DiagnosisSettings
+
+    calls = []
+
+    def counting(case, settings=None):
+        calls.append(settings)
+        return _fake_run_case(case)
+
+    monkeypatch.setattr(selfcheck, "run_case", counting)
+    kw = dict(seed=11, concepts=["htls"], sensors=["full"], none_per_set=2, kinds=["none"], cache=tmp_path / "c")
+    version2 = DiagnosisSettings(spanning_forms=False)
+    selfcheck.self_check(**kw, settings=version2)
+    assert len(calls) == 2
+    selfcheck.self_check(**kw, settings=version2)
+    assert len(calls) == 2                                   # same settings: read back
+    selfcheck.self_check(**kw)                               # the defaults (version 4): diagnosed again
+    assert len(calls) == 4 and calls[-1] is None
+    for path in (tmp_path / "c").glob("*.json"):             # as written before settings were recorded
+        data = json.loads(path.read_text())
+        del data["diagnosis_settings"]
+        path.write_text(json.dumps(data))
+    selfcheck.self_check(**kw, settings=version2)
+    assert len(calls) == 4
+
+
 # --------------------------------------------------------------------------------------
 # the frozen protocol (benchmarks/gap.py)
 # --------------------------------------------------------------------------------------
@@ -249,6 +277,8 @@ def test_protocol_refuses_the_evaluation_block_when_a_source_changed(tmp_path, m
 def test_a_method_version_is_frozen_with_its_own_settings_and_catalogue(tmp_path):
     """A version under evaluation is frozen in a file of its own (the default version's protocol
     untouched); a protocol that predates a setting runs without it."""
+    from ema_uq.gap.strategy import DiagnosisSettings
+
     bench = _bench()
     root = _copy_of_the_sources(bench, tmp_path / "repo")
     frozen = bench.freeze(tmp_path / "v4.yaml", root=root, development=[11], evaluation=[5205], method_version=4)
@@ -257,11 +287,15 @@ def test_a_method_version_is_frozen_with_its_own_settings_and_catalogue(tmp_path
     assert frozen["catalogue"]["lths"]["load_dependent_friction"] == ["load_dependent_friction",
                                                                       "load_friction_directional"]
     assert bench.protocol_settings(frozen).spanning_forms is True
-    default = bench.freeze(tmp_path / "default.yaml", root=root, development=[11], evaluation=[5206])
-    assert "method_version" not in default and default["catalogue"]["lths"]["stribeck"] == ["stribeck"]
-    older = {k: v for k, v in default["settings"].items() if k != "spanning_forms"}
+    version2 = bench.freeze(tmp_path / "v2.yaml", root=root, development=[11], evaluation=[5206], method_version=2)
+    assert version2["catalogue"]["lths"]["stribeck"] == ["stribeck"]
+    older = {k: v for k, v in version2["settings"].items() if k != "spanning_forms"}
     assert bench.protocol_settings({"settings": older}).spanning_forms is False
     assert bench.method_settings(4) == bench.protocol_settings(frozen)
+    # the code's defaults are the default method version's settings (4 since block 5205)
+    assert bench.method_settings(bench.DEFAULT_METHOD_VERSION) == DiagnosisSettings() == bench.method_settings(4)
+    default = bench.freeze(tmp_path / "default.yaml", root=root, development=[11], evaluation=[5207])
+    assert "method_version" not in default and bench.protocol_settings(default) == DiagnosisSettings()
     with pytest.raises(SystemExit, match="no method version 7"):
         bench.method_settings(7)
 
