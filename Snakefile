@@ -10,6 +10,7 @@
 import json
 import sys
 from importlib import resources
+from pathlib import Path
 
 from snakemake.utils import validate
 
@@ -395,13 +396,26 @@ rule fault_diagnosis:
         "ema-uq fault-diagnosis --study {params.study_file} --out {output} > {log} 2>&1"
 
 
+# the out-of-sample figures of the default gap method (version 4): the evaluation block of its frozen
+# protocol (benchmarks/gap_protocol_v4.yaml), shown in the report beside a study's own self-check
+SELFCHECK_EVALUATION = "benchmarks/protocol_outcomes/method4/evaluation.json"
+
+
+def selfcheck_evaluation(w):
+    """The evaluation block for a study with a self-check (none where the file is not beside the workflow)."""
+    return [SELFCHECK_EVALUATION] if "selfcheck" in stage_outputs(w) and Path(SELFCHECK_EVALUATION).is_file() else []
+
+
 rule report:
     input:
         unpack(stage_outputs),
         study="studies/{study}.yaml",
         template=REPORT_TEMPLATE,
+        selfcheck_evaluation=selfcheck_evaluation,
     output:
         report("reports/{study}.html", caption="report/caption.rst", category="Reports"),
+    params:
+        evaluation=lambda w, input: " ".join(f"--selfcheck-evaluation {f}" for f in input.selfcheck_evaluation),
     log:
         "results/{study}/logs/report.log",
     benchmark:
@@ -412,7 +426,8 @@ rule report:
     conda:
         CONDA_ENV
     shell:
-        "ema-uq report --study {input.study} --results results/{wildcards.study} --out {output} > {log} 2>&1"
+        "ema-uq report --study {input.study} --results results/{wildcards.study} --out {output} "
+        "{params.evaluation} > {log} 2>&1"
 
 
 # --- simulation-based calibration (target `sbc`, not part of `all`) ----------------------------

@@ -19,6 +19,9 @@ def add_report(subparsers) -> None:
     p.add_argument("--study", required=True, metavar="STUDY.yaml")
     p.add_argument("--results", required=True, metavar="DIR", help="the study's results folder")
     p.add_argument("--out", required=True, metavar="REPORT.html")
+    p.add_argument("--selfcheck-evaluation", metavar="SELFCHECK.json",
+                   help="the evaluation block of the default gap method's frozen protocol, shown beside the "
+                        "study's own self-check (the workflow gives benchmarks/protocol_outcomes/.../evaluation.json)")
     p.set_defaults(handler=_run_report)
 
 
@@ -38,13 +41,23 @@ def _run_report(args: argparse.Namespace) -> str:
     if not any(Path(args.results).glob("*.json")):
         raise CLIError(f"results folder {args.results} holds no stage result (no .json file); run the workflow "
                        "first, or give the study's results folder (results/<study>)")
+    evaluation = None
+    if args.selfcheck_evaluation:
+        path = Path(args.selfcheck_evaluation)
+        if not path.is_file():
+            raise CLIError(f"--selfcheck-evaluation {path}: no such file; give the evaluation.json of a frozen "
+                           "protocol's block (benchmarks/protocol_outcomes) or leave the option out")
+        evaluation = io.read_json(path)
+        if not {"top1", "targets", "n_cases"} <= set(evaluation):
+            raise CLIError(f"--selfcheck-evaluation {path}: not a self-check result (no top1, targets or n_cases); "
+                           "give the evaluation.json that benchmarks/gap.py --protocol writes")
     out = io.prepare_output(args.out)
     t0 = time.perf_counter()
 
     def progress(line: str) -> None:
         print(f"{PROG} report: {line}, {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
 
-    text = build_report(study, args.study, args.results, progress=progress)
+    text = build_report(study, args.study, args.results, progress=progress, selfcheck_evaluation=evaluation)
     out.write_text(text, encoding="utf-8")
     return f"wrote {out} ({len(text) / 1e6:.1f} MB)"
 

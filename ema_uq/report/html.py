@@ -173,17 +173,19 @@ def _provenance_section(study: dict, study_path: Path, results: Path, fits: dict
 
 
 def build_report(study: dict, study_path: str | Path, results: str | Path,
-                 progress: Callable[[str], None] | None = None) -> str:
+                 progress: Callable[[str], None] | None = None, selfcheck_evaluation: dict | None = None) -> str:
     """HTML text of the report for ``study`` from the result files in ``results``; ``progress``
-    is called with a line after every figure drawn (drawing is the slow part)."""
+    is called with a line after every figure drawn (drawing is the slow part);
+    ``selfcheck_evaluation``: the evaluation block of the default gap method's frozen protocol (a
+    SELFCHECK.json), shown beside the study's own self-check."""
     html_format.PROGRESS = progress
     try:
-        return _sections_of(study, Path(study_path), Path(results))
+        return _sections_of(study, Path(study_path), Path(results), selfcheck_evaluation)
     finally:
         html_format.PROGRESS = None
 
 
-def _sections_of(study: dict, study_path: Path, results: Path) -> str:
+def _sections_of(study: dict, study_path: Path, results: Path, selfcheck_evaluation: dict | None = None) -> str:
     rig = rig_of(study["concept"])
     if rig is not None and rig.fault_diagnosis:  # measured fault records: one stage, healthy fit and diagnoses
         return _render(study, [("summary", "Summary of findings", _summary_section(study, results, {})),
@@ -203,7 +205,8 @@ def _sections_of(study: dict, study_path: Path, results: Path) -> str:
     if (results / "gap.json").exists():
         sections.append(("gap", "Sim-to-real gap", _gap_section(study, results)))
     if (results / "selfcheck.json").exists():
-        sections.append(("selfcheck", "Blind self-check of the gap diagnosis", _selfcheck_section(results)))
+        sections.append(("selfcheck", "Blind self-check of the gap diagnosis",
+                         _selfcheck_section(results, selfcheck_evaluation)))
     stages = {"posterior": "Bayesian posterior", "sobol": "Sobol sensitivity",
               "ident": "Identifiability", "gap": "Sim-to-real gap"}
     if rig is not None:  # Sobol and identifiability concern the EMA friction terms

@@ -125,15 +125,8 @@ def _left_out_table(matrix: dict) -> str:
             + _table(["family left out", *map(html.escape, columns)], rows))
 
 
-def _selfcheck_section(results: Path) -> str:
-    from . import gap_figures
-
-    path = results / "selfcheck.json"
-    if not path.exists():
-        return '<p class="muted">Blind self-check not run for this study.</p>'
-    sc = io.read_json(path)
-    if "top1" not in sc:
-        return '<p class="muted">Self-check file of an older format; rerun ema-uq gap-selfcheck.</p>'
+def _score_rows(sc: dict) -> list[list[str]]:
+    """Score rows (score, value, 95 % interval, target, judgement) of a self-check (SELFCHECK.json)."""
     targets = sc["targets"]
     # the self-check's own one-sided judgement; files without it are judged on the two-sided interval
     status = sc.get("status") or {}
@@ -153,19 +146,50 @@ def _selfcheck_section(results: Path) -> str:
         return [name, f"{_fmt(r['value'], 3)} ({r['count']}/{r['n']})", f"{_fmt(low, 2)}–{_fmt(high, 2)}",
                 f"{cmp} {targets[key]}", mark]
 
-    s = sc["shrink"]
-    rows = [rate("top-1 accuracy (right family named)", "top1_accuracy", "top1", "≥"),
+    return [rate("top-1 accuracy (right family named)", "top1_accuracy", "top1", "≥"),
             rate("false-alarm rate (no-effect cases)", "false_alarm_rate", "false_alarms", "≤"),
             rate("outside the catalogue flagged (“unexplained” or “ambiguous”)", "out_of_catalogue_flagged",
                  "out_of_catalogue_flagged", "≥"),
             rate("left-out family flagged (its forms removed from the catalogue)", "left_out_flagged",
                  "left_out_flagged", "≥"),
-            rate("wrong family named with high confidence", "wrong_family_confident", "wrong_family_confident", "≤"),
-            ["honest shrink where the right family was named (median, quartiles)",
-             (f"{_fmt(s['median'], 2)} ({_fmt(s['q25'], 2)}–{_fmt(s['q75'], 2)}), n = {s['n']}" if s.get("n", 0) >= 4
-              else f"n = {s.get('n', 0)}: " + (", ".join(_fmt(c["shrink"], 2) for c in sc["cases"]
-                                                          if c.get("shrink") is not None and c["correct"]) or "–")),
-             f"median se {_fmt(s['median_se'], 2)}" if s.get("n") else "–", "", ""]]
+            rate("wrong family named with high confidence", "wrong_family_confident", "wrong_family_confident", "≤")]
+
+
+def _evaluation_part(evaluation: dict | None) -> str:
+    """The out-of-sample figures of the default method: its frozen protocol's evaluation block,
+    run once on frozen sources (``benchmarks/gap.py --protocol``), beside this run's self-check,
+    whose seed the method may have been built on."""
+    if evaluation is None:
+        return ""
+    settings = evaluation.get("settings") or {}
+    seeds = ", ".join(str(seed) for seed in settings.get("seeds") or [evaluation.get("seed")])
+    return ("<h3>Out of sample: the default method's evaluation block</h3>"
+            "<p>The figures above are on this run's seed, which may have been looked at while the method was "
+            "built. These are the evaluation block of the default method's frozen protocol: seeds "
+            f"{html.escape(seeds)}, {evaluation['n_cases']} cases, run once on frozen sources "
+            f"(sources {html.escape(str(settings.get('sources_sha256', '?'))[:12])}), nothing changed because of "
+            "them.</p>"
+            + _table(["score", "value", "95 % interval", "target", ""], _score_rows(evaluation)))
+
+
+def _selfcheck_section(results: Path, evaluation: dict | None = None) -> str:
+    """The blind self-check of a study (``results/selfcheck.json``) and, when given, the evaluation
+    block of the default method's frozen protocol (a SELFCHECK.json of the same form)."""
+    from . import gap_figures
+
+    path = results / "selfcheck.json"
+    if not path.exists():
+        return '<p class="muted">Blind self-check not run for this study.</p>'
+    sc = io.read_json(path)
+    if "top1" not in sc:
+        return '<p class="muted">Self-check file of an older format; rerun ema-uq gap-selfcheck.</p>'
+    s = sc["shrink"]
+    rows = _score_rows(sc) + [
+        ["honest shrink where the right family was named (median, quartiles)",
+         (f"{_fmt(s['median'], 2)} ({_fmt(s['q25'], 2)}–{_fmt(s['q75'], 2)}), n = {s['n']}" if s.get("n", 0) >= 4
+          else f"n = {s.get('n', 0)}: " + (", ".join(_fmt(c["shrink"], 2) for c in sc["cases"]
+                                                      if c.get("shrink") is not None and c["correct"]) or "–")),
+         f"median se {_fmt(s['median_se'], 2)}" if s.get("n") else "–", "", ""]]
     cases = []
     for c in sc["cases"]:
         shrink = "" if c.get("shrink") is None else _pm(c["shrink"], c.get("shrink_se"), 2)
@@ -188,6 +212,7 @@ def _selfcheck_section(results: Path) -> str:
             "model-form stress); a low-confidence “unexplained” is a soft alarm "
             f"({_fmt((sc.get('soft_alarms') or {}).get('value'), 3)}), a high-confidence one a hard alarm "
             f"({_fmt((sc.get('hard_alarms') or {}).get('value'), 3)}).</p>"
+            + _evaluation_part(evaluation)
             + "<h3>Confusion matrix</h3>" + _img(gap_figures.selfcheck_confusion(sc), "self-check confusion matrix")
             + _left_out_table(sc.get("confusion_left_out") or {})
             + "<h3>Cases</h3>"

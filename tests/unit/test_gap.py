@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -457,7 +458,7 @@ def test_gap_json_contract_and_round_trip(effect_result, tmp_path):
     # channels and regimes as always; "stroke" was added beside them (where along the stroke the gap lies)
     assert set(data["where"]) == {"channels", "regimes", "stroke"} and isinstance(data["where"]["stroke"], list)
     assert {"shrink", "shrink_se", "shrink_record"} <= set(data["gap"])
-    # the default (method version 2) runs at the model's own step, not the converged-step option's
+    # the default (method version 4) runs at the model's own step, not the converged-step option's
     assert data["nominal"]["integration_step_s"] == get_model("htls").integration_step
     path = tmp_path / "gap.json"
     io.write_json(path, data)
@@ -623,6 +624,32 @@ def test_self_check_report_section_and_confusion_figure(tmp_path):
     # a self-check file without its own judgement is judged on the two-sided interval
     assert "NOT met" in _judged(0.5, 0.8, 0.9, "≥") and ">met<" in _judged(0.91, 1.0, 0.9, "≥")
     assert ">met<" in _judged(0.0, 0.049, 0.05, "≤") and "NOT met" in _judged(0.06, 0.2, 0.05, "≤")
+
+
+def test_the_report_shows_the_default_methods_evaluation_block_beside_the_run(tmp_path, capsys):
+    """The out-of-sample figures (the frozen protocol's evaluation block) sit beside the study's own
+    self-check, whose seed the method may have been built on; a wrong file is a one-line error."""
+    from ema_uq.cli import main as cli_main
+    from ema_uq.report.html import _selfcheck_section
+
+    run = selfcheck.SelfCheckResult([_outcome("effect", "backlash", "effect", "backlash", 0.9)], 5, True, 3.0)
+    io.write_json(tmp_path / "selfcheck.json", run.to_json())
+    block = selfcheck.SelfCheckResult([_outcome("effect", "backlash", "effect", "backlash", 0.9),
+                                       _outcome("effect", "stribeck", "unexplained", None)], 5205, False, 9.0)
+    evaluation = {**block.to_json(), "settings": {"seeds": [5205], "sources_sha256": "8e978d655b46c18d"}}
+    assert "Out of sample" not in _selfcheck_section(tmp_path)
+    text = _selfcheck_section(tmp_path, evaluation)
+    assert "Out of sample" in text and "seeds 5205, 2 cases" in text and "8e978d655b46" in text
+    assert "0.5 (1/2)" in text                           # the block's top-1, not the run's 1/1
+    bad = tmp_path / "bad.json"
+    io.write_json(bad, {"verdict": "none"})
+    study = Path(__file__).resolve().parents[2] / "studies" / "smoke.yaml"
+    for given, message in ((tmp_path / "missing.json", "no such file"), (bad, "not a self-check result")):
+        code = cli_main(["report", "--study", str(study), "--results", str(tmp_path), "--out", str(tmp_path / "r.html"),
+                         "--selfcheck-evaluation", str(given)])
+        err = capsys.readouterr().err
+        assert code == 2 and message in err and err.count("\n") == 1, err
+    assert not (tmp_path / "r.html").exists()
 
 
 def test_one_real_self_check_case_is_diagnosed_blind():
