@@ -471,7 +471,10 @@ METHOD_VERSIONS = {1: "the nominal model's kinematics and command taken as exact
                       "contract's converged step where no effect brings faster dynamics",
                    6: "5 with fits at the precision the verdict reads: each stops once the decrease of 2V still to "
                       "come is below 0.1 (a hundredth of the evidence margin), no identifiable combinations of "
-                      "held parameters"}
+                      "held parameters",
+                   7: "6 with the decrease still to come judged by what the next full Gauss-Newton step promises "
+                      "at the current iterate, not extrapolated from past decreases (version 6 stopped a nominal "
+                      "fit on a plateau, 1798 in 2V short of its optimum)"}
 
 
 #: the version ``DiagnosisSettings()`` gives: 4 since its evaluation block 5205 met its rule (version 2 before)
@@ -482,9 +485,10 @@ def method_settings(version: int) -> DiagnosisSettings:
     """The diagnosis settings of method ``version`` (:data:`METHOD_VERSIONS`)."""
     if version not in METHOD_VERSIONS:
         raise SystemExit(f"no method version {version}; choose from {', '.join(map(str, METHOD_VERSIONS))}")
-    return DiagnosisSettings(model_form_allowance=version >= 2, converged_step=version in (3, 5, 6),
+    return DiagnosisSettings(model_form_allowance=version >= 2, converged_step=version in (3, 5, 6, 7),
                              spanning_forms=version >= 4, operating_point_forms=version >= 5,
-                             nested_forms=version < 5, decision_fits=version >= 6)
+                             nested_forms=version < 5, decision_fits=version >= 6,
+                             decision_stop="predicted" if version >= 7 else "extrapolated")
 
 
 def run_block(protocol: dict, block: str, out_dir: Path, jobs: int = 1, chunk: str | None = None,

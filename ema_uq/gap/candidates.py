@@ -149,11 +149,12 @@ def _screened_fit(run: _Diagnosis, problem: FitProblem, augmented, names: Sequen
 
 def _fit_settings(settings, max_iterations: int) -> Settings:
     """The estimator settings of one fit of the diagnosis under ``settings`` (a
-    :class:`DiagnosisSettings`; ``decision_fits``: stop at :data:`DECISION_TOLERANCE`, no
-    identifiable combinations)."""
+    :class:`DiagnosisSettings`; ``decision_fits``: stop at :data:`DECISION_TOLERANCE`, judged as
+    ``decision_stop`` says, no identifiable combinations)."""
     lean = bool(settings.decision_fits)
     return Settings(tolerance=settings.tolerance, max_iterations=max_iterations,
-                    decrease_tolerance=DECISION_TOLERANCE if lean else None, combinations=not lean)
+                    decrease_tolerance=DECISION_TOLERANCE if lean else None, combinations=not lean,
+                    decrease_estimate=getattr(settings, "decision_stop", "extrapolated"))
 
 
 # ----------------------------------------------------------------------------------------

@@ -69,7 +69,12 @@ class DiagnosisSettings:
     a geometric series) is below :data:`DECISION_TOLERANCE`, in the units of 2 ln L in which ΔBIC,
     the held-out gain and the evidence margin are read, and a fit that holds parameters the data
     cannot determine does not compute the identifiable combinations of the held groups (reported
-    by ``identify``, read by no verdict).
+    by ``identify``, read by no verdict);
+    ``decision_stop``: how ``decision_fits`` judges the decrease still to come: "extrapolated"
+    (method version 6, the geometric series of the last two decreases) or "predicted" (method
+    version 7: the decrease the full Gauss-Newton step promises at the current iterate, checked
+    before each step; the history of decreases is no bound, a plateau can come before a large
+    decrease).
     """
 
     holdout_fraction: float = 0.3
@@ -86,6 +91,7 @@ class DiagnosisSettings:
     operating_point_forms: bool = False
     nested_forms: bool = True
     decision_fits: bool = False
+    decision_stop: str = "extrapolated"
 
     def __post_init__(self) -> None:
         if not isinstance(self.model_form_allowance, (bool, np.bool_)):
@@ -95,6 +101,9 @@ class DiagnosisSettings:
         for option in ("spanning_forms", "operating_point_forms", "nested_forms", "decision_fits"):
             if not isinstance(getattr(self, option), (bool, np.bool_)):
                 raise ValueError(f"{option} must be true or false, got {getattr(self, option)!r}")
+        if self.decision_stop not in ("extrapolated", "predicted"):
+            raise ValueError(f"decision_stop {self.decision_stop!r}: choose 'extrapolated' (method version 6) or "
+                             "'predicted' (method version 7)")
 
 
 class GapMetric(Protocol):

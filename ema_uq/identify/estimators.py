@@ -40,6 +40,12 @@ class Settings:
     #: not small), is below this, in units of 2 ln L (those of BIC and of evidence margins); for
     #: callers that use V only through differences far larger than it. None: ``tolerance`` alone
     decrease_tolerance: float | None = None
+    #: how the decrease still to come is judged against ``decrease_tolerance``: "extrapolated"
+    #: (the last two decreases as a geometric series, after each step) or "predicted" (before each
+    #: step, the decrease of 2V that the full Gauss-Newton step promises at the current iterate, the
+    #: quadratic model's own estimate: the history of decreases is no bound, since a plateau of small
+    #: steps through a curved valley can come before a large decrease)
+    decrease_estimate: str = "extrapolated"
     #: with ``unidentifiable="fix"``: report the identifiable combination of each held group
     #: (:func:`ema_uq.identify.reduction.identifiable_combinations`: 2 x free + 1 simulations at
     #: the estimate); off for callers that read only the fit
@@ -51,6 +57,9 @@ class Settings:
                                       and np.isfinite(value) and value > 0):
             raise IdentificationError(f"decrease_tolerance must be a positive number or None, "
                                       f"got {self.decrease_tolerance!r}")
+        if self.decrease_estimate not in ("extrapolated", "predicted"):
+            raise IdentificationError(f"decrease_estimate {self.decrease_estimate!r}: choose 'extrapolated' or "
+                                      "'predicted'")
 
 
 class SingularInformationError(IdentificationError):
@@ -181,6 +190,14 @@ def _relative_change(old: _State, new: _State, n: int) -> float:
     return abs(np.expm1((old.objective - new.objective) * 2.0 / n))
 
 
+def _promised_decrease(problem: FitProblem, state: "_State", info: np.ndarray, grad: np.ndarray,
+                       scale: np.ndarray) -> float:
+    """The decrease of 2V that the full Gauss-Newton step (bounded parameters held) promises at
+    ``state``: gᵀ F⁻¹ g on the quadratic model, which near the optimum is the decrease still to come."""
+    step = _bounded_step(problem, state, info, grad, scale) / scale
+    return -float(grad @ step)
+
+
 def _remaining_decrease(previous: float | None, last: float) -> float:
     """The decrease of 2V still to come after accepted decreases ``previous`` then ``last``
     (each of 2V), as the geometric series of their ratio; inf when the ratio is not below 1 or
@@ -291,6 +308,13 @@ def maximum_likelihood(problem: FitProblem, *, method: str = "gn", start: np.nda
             except SingularInformationError as exc:
                 exc.n_simulations = counter.n
                 raise
+        if settings.decrease_tolerance is not None and settings.decrease_estimate == "predicted":
+            promised = _promised_decrease(problem, state, info, grad, scale)
+            if promised < settings.decrease_tolerance:
+                converged, message = True, (f"decrease of 2V a full Gauss-Newton step promises {promised:.2e} < "
+                                            f"{settings.decrease_tolerance:g}")
+                iteration -= 1
+                break
         new, extra = stepper(problem, state, info, grad, scale, settings, counter)
         if new is None:
             # exhausted step control is convergence only when the model promised no real decrease
@@ -312,7 +336,7 @@ def maximum_likelihood(problem: FitProblem, *, method: str = "gn", start: np.nda
         if change < settings.tolerance:
             converged, message = True, f"|dJ/J| = {change:.2e} < {settings.tolerance:g}"
             break
-        if settings.decrease_tolerance is not None:
+        if settings.decrease_tolerance is not None and settings.decrease_estimate == "extrapolated":
             remaining = _remaining_decrease(previous_decrease, decrease)
             if remaining < settings.decrease_tolerance:
                 converged, message = True, (f"decrease of 2V still to come {remaining:.2e} < "

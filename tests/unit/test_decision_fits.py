@@ -107,3 +107,41 @@ def test_decision_fits_switch_the_diagnosis_fits_to_both_rules():
     plain = candidates._fit_settings(DiagnosisSettings(), 30)
     assert plain.decrease_tolerance is None and plain.combinations is True
     assert plain.tolerance == DiagnosisSettings().tolerance == Settings().tolerance
+
+
+# --- method version 7: the decrease still to come as the Gauss-Newton step promises it -----------
+def test_the_predicted_rule_stops_where_the_full_step_promises_less_than_the_tolerance(model, full_problem):
+    start = perturbed_start(model.parameters, 0.3, seed=3, around=model.parameters.nominal)
+    full = estimate(full_problem, start=start)
+    lean = estimate(full_problem, start=start,
+                    settings=Settings(decrease_tolerance=DECISION_TOLERANCE, decrease_estimate="predicted"))
+    assert lean.converged and "a full Gauss-Newton step promises" in lean.message
+    assert lean.iterations <= full.iterations
+    # the iterations both ran are the same iterations, and what was left is within the tolerance
+    v = [h["objective"] for h in lean.history]
+    np.testing.assert_array_equal(v, [h["objective"] for h in full.history[:len(v)]])
+    assert 0.0 <= 2.0 * (lean.objective - full.objective) < DECISION_TOLERANCE
+
+
+def test_the_predicted_rule_reads_the_model_not_the_history(model, full_problem, monkeypatch):
+    """A step that promises much is taken however small the last decreases were (a plateau before a
+    large decrease stops the extrapolated rule, not this one); one that promises nothing ends the fit."""
+    start = perturbed_start(model.parameters, 0.3, seed=3, around=model.parameters.nominal)
+    full = estimate(full_problem, start=start)
+    settings = Settings(decrease_tolerance=DECISION_TOLERANCE, decrease_estimate="predicted")
+    monkeypatch.setattr(estimators, "_promised_decrease", lambda *args: 1e9)
+    never = estimate(full_problem, start=start, settings=settings)
+    assert never.iterations == full.iterations and never.objective == full.objective
+    monkeypatch.setattr(estimators, "_promised_decrease", lambda *args: 0.0)
+    at_once = estimate(full_problem, start=start, settings=settings)
+    assert at_once.iterations == 0 and at_once.objective == full.history[0]["objective"]
+
+
+def test_a_decrease_estimate_and_a_decision_stop_must_be_known():
+    with pytest.raises(IdentificationError, match="decrease_estimate 'guessed': choose"):
+        Settings(decrease_estimate="guessed")
+    with pytest.raises(ValueError, match="decision_stop 'guessed': choose"):
+        DiagnosisSettings(decision_stop="guessed")
+    lean = candidates._fit_settings(DiagnosisSettings(decision_fits=True, decision_stop="predicted"), 8)
+    assert lean.decrease_estimate == "predicted" and lean.decrease_tolerance == DECISION_TOLERANCE
+    assert candidates._fit_settings(DiagnosisSettings(decision_fits=True), 8).decrease_estimate == "extrapolated"

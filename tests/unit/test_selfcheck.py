@@ -296,8 +296,10 @@ def test_a_method_version_is_frozen_with_its_own_settings_and_catalogue(tmp_path
     assert bench.method_settings(bench.DEFAULT_METHOD_VERSION) == DiagnosisSettings() == bench.method_settings(4)
     default = bench.freeze(tmp_path / "default.yaml", root=root, development=[11], evaluation=[5207])
     assert "method_version" not in default and bench.protocol_settings(default) == DiagnosisSettings()
-    with pytest.raises(SystemExit, match="no method version 7"):
-        bench.method_settings(7)
+    assert bench.method_settings(7).decision_stop == "predicted"
+    assert bench.method_settings(6).decision_stop == "extrapolated"
+    with pytest.raises(SystemExit, match="no method version 8"):
+        bench.method_settings(8)
 
 
 def test_the_committed_protocol_fixes_catalogue_thresholds_and_blocks():
