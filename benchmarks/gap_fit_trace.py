@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 from dataclasses import replace
@@ -52,14 +53,15 @@ def traced_diagnosis(outcome_file: Path, version: int) -> tuple[CaseOutcome, lis
                 and "decrease of 2V" in fit.message):
             rest = replace(settings, decrease_tolerance=None,
                            max_iterations=max(settings.max_iterations - fit.iterations, 1))
+            failed = ""
             try:
                 more = original(problem, method=method, start=fit.estimate, settings=rest, **kwargs)
                 left = 2.0 * (fit.objective - more.objective)
             except Exception as exc:  # noqa: BLE001 - a continuation that fails leaves nothing measured
-                left, more = float("nan"), exc
+                left, failed = float("nan"), f"; continuation failed: {type(exc).__name__}: {exc}"
             stops.append({"fit": len(stops), "method": method, "free": int(problem.free_index.size),
                           "iterations": fit.iterations, "cap": settings.max_iterations, "left": left,
-                          "message": fit.message})
+                          "message": fit.message + failed})
         return fit
 
     fitting.estimate = estimate
@@ -76,7 +78,7 @@ def main() -> None:
     parser.add_argument("--method-version", type=int, required=True,
                         choices=[v for v in METHOD_VERSIONS if v >= 6])
     args = parser.parse_args()
-    worst = 0.0
+    worst, unmeasured = 0.0, 0
     for path in args.outcomes:
         if not path.is_file():
             raise SystemExit(f"{path}: no such outcome file; give stored case outcomes (benchmarks/protocol_outcomes)")
@@ -86,10 +88,12 @@ def main() -> None:
         for row in stops:
             print(f"    fit {row['fit']:3d} {row['method']} {row['free']:2d} free, {row['iterations']:2d} of "
                   f"{row['cap']:2d} iterations: 2V left {row['left']:10.4g}   ({row['message']})")
-        if stops:
-            worst = max(worst, max(row["left"] for row in stops))
+        measured = [row["left"] for row in stops if math.isfinite(row["left"])]
+        unmeasured += len(stops) - len(measured)
+        worst = max([worst, *measured])
     print(f"largest decrease of 2V left by a decision stop: {worst:.4g} (bound of condition (f): {BOUND:g}; "
-          f"{'within' if worst <= BOUND else 'EXCEEDED'})")
+          f"{'within' if worst <= BOUND else 'EXCEEDED'})"
+          + (f"; {unmeasured} stopped fit(s) could not be continued (nan): not measured" if unmeasured else ""))
 
 
 if __name__ == "__main__":
