@@ -318,8 +318,7 @@ def maximum_likelihood(problem: FitProblem, *, method: str = "gn", start: np.nda
         new, extra = stepper(problem, state, info, grad, scale, settings, counter)
         if new is None:
             # exhausted step control is convergence only when the model promised no real decrease
-            step = _bounded_step(problem, state, info, grad, scale) / scale
-            promised = -0.5 * float(grad @ step)
+            promised = 0.5 * _promised_decrease(problem, state, info, grad, scale)    # of V, not 2V
             converged = promised < settings.tolerance * problem.n_samples / 2
             message = ("no further decrease of det R along the step (at a minimum to numerical precision)"
                        if converged else
