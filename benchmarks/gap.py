@@ -174,7 +174,8 @@ def _frozen_method(settings: DiagnosisSettings | None = None) -> dict:
                                    strategy.settings, converged_step=settings.converged_step,
                                    spanning_forms=settings.spanning_forms,
                                    operating_point_forms=settings.operating_point_forms,
-                                   nested_forms=settings.nested_forms, decision_fits=settings.decision_fits)),
+                                   nested_forms=settings.nested_forms, decision_fits=settings.decision_fits,
+                                   decision_stop=settings.decision_stop)),
                                "start_multiples": [float(m) for m in strategy.start_multiples],
                                "where_source": strategy.where_source,
                                "metric": type(strategy.metric).__name__,
@@ -457,6 +458,12 @@ def protocol_settings(protocol: dict) -> DiagnosisSettings:
     frozen.setdefault("model_form_allowance", False)
     frozen.setdefault("converged_step", False)
     frozen.setdefault("spanning_forms", False)
+    # switches added after a protocol was frozen keep the value that protocol ran with, whatever
+    # the defaults become
+    frozen.setdefault("operating_point_forms", False)
+    frozen.setdefault("nested_forms", True)
+    frozen.setdefault("decision_fits", False)
+    frozen.setdefault("decision_stop", "extrapolated")
     return DiagnosisSettings(**frozen)
 
 

@@ -316,6 +316,34 @@ def test_the_committed_protocol_fixes_catalogue_thresholds_and_blocks():
     assert protocol["selfcheck"]["none_per_set"] * 4 >= 60
 
 
+def test_a_protocol_frozen_before_a_switch_existed_keeps_running_without_it(monkeypatch):
+    import dataclasses
+
+    from ema_uq.gap.strategy import DiagnosisSettings
+
+    bench = _bench()
+    version4 = dataclasses.asdict(bench.method_settings(4))
+    before_version5 = {k: v for k, v in version4.items()
+                       if k not in ("operating_point_forms", "nested_forms", "decision_fits", "decision_stop")}
+
+    @dataclasses.dataclass(frozen=True)
+    class LaterDefaults(DiagnosisSettings):  # the defaults of a later default method
+        operating_point_forms: bool = True
+        nested_forms: bool = False
+        decision_fits: bool = True
+        decision_stop: str = "predicted"
+
+    monkeypatch.setattr(bench, "DiagnosisSettings", LaterDefaults)
+    assert dataclasses.asdict(bench.protocol_settings({"settings": before_version5})) == version4
+
+
+def test_the_version7_protocol_records_the_stop_it_runs_with():
+    protocol = _bench().load_protocol(ROOT / "benchmarks" / "gap_protocol_v7.yaml")
+    assert protocol["method_version"] == 7 and protocol["settings"]["decision_stop"] == "predicted"
+    assert all(protocol["strategies"][c]["settings"]["decision_stop"] == "predicted" for c in ("htls", "lths"))
+    assert protocol["blocks"]["evaluation"]["seeds"] == [5208]
+
+
 def test_a_protocol_runs_the_method_version_it_was_frozen_for():
     bench = _bench()
     version1 = bench.protocol_settings({"settings": {"max_effects": 1}})
@@ -540,8 +568,15 @@ def test_the_third_unseen_protocol_lists_its_cases():
     from ema_uq.gap.variant_catalogue import UNSEEN_VARIANTS_3
 
     assert protocol["variant_set"] == "UNSEEN_VARIANTS_3" and protocol["seeds"] == [5601, 5602]
-    assert protocol["method_protocol"] == "benchmarks/gap_protocol_v5.yaml"
-    assert protocol["results"] == "benchmarks/protocol_outcomes/method5/unseen3"
+    # written for version 5, never frozen; run on the frozen version 7, version 4 as the paired reference
+    assert protocol["method_protocol"] == "benchmarks/gap_protocol_v7.yaml"
+    assert protocol["results"] == "benchmarks/protocol_outcomes/method7/unseen3"
+    with open(ROOT / "benchmarks" / "gap_unseen3_v4.yaml", encoding="utf-8") as fh:
+        reference = yaml.safe_load(fh)
+    assert reference["method_protocol"] == "benchmarks/gap_protocol_v4.yaml"
+    assert reference["results"] == "benchmarks/protocol_outcomes/method4/unseen3"
+    assert {k: v for k, v in reference.items() if k not in ("method_protocol", "results")} == {
+        k: v for k, v in protocol.items() if k not in ("method_protocol", "results")}
     written = {k: v.family for k, v in UNSEEN_VARIANTS_3.items()}
     assert {k: v["family"] for k, v in protocol["variants"].items()} == written
     assert {k for k, v in protocol["variants"].items() if v.get("left_out_too")} == {
@@ -555,7 +590,8 @@ def test_the_third_unseen_protocol_lists_its_cases():
 
 @pytest.mark.parametrize("protocol_file, variant", [("gap_unseen.yaml", "stribeck_asymmetric"),
                                                     ("gap_unseen2.yaml", "ujoint_swivel"),
-                                                    ("gap_unseen3.yaml", "stribeck_dwell")])
+                                                    ("gap_unseen3.yaml", "stribeck_dwell"),
+                                                    ("gap_unseen3_v4.yaml", "stribeck_dwell")])
 def test_the_unseen_protocol_describes_the_cases_it_runs(tmp_path, monkeypatch, protocol_file, variant):
     import sys
 
