@@ -13,8 +13,8 @@ second set, written for the evaluation of method version 4 (a torque ripple prop
 motor torque, a U-joint angle growing with the stroke, window-averaging sensors; outside the
 catalogue a saturating torque constant, a PI speed loop and a speed feed-forward), and one that
 names ``variant_set: UNSEEN_VARIANTS_3`` (``benchmarks/gap_unseen3.yaml``) the third, written for
-the evaluation of method version 5 (the play of a worn screw, a progressive coupling, breakaway
-friction that builds up at rest; outside the catalogue a binding screw, an eccentric motor angle
+the evaluation of method version 5 and run on the frozen version 7 (the play of a worn screw, a
+progressive coupling, breakaway friction that builds up at rest; outside the catalogue a binding screw, an eccentric motor angle
 sensor and a position-loop dead band); without the key the set is the first.
 
 The protocol (``benchmarks/gap_unseen.yaml``, committed before the run) fixes the seeds, the
