@@ -49,9 +49,18 @@ DEFAULT_VARIANT_SET = "UNSEEN_VARIANTS"
 def load_unseen_protocol(path: Path) -> dict:
     """The protocol, checked against the variants it names (a variant renamed or moved to
     another family since it was written stops the run); ``variant_set`` (default
-    :data:`DEFAULT_VARIANT_SET`) names the set of :data:`~ema_uq.gap.variant_catalogue.UNSEEN_SETS`."""
+    :data:`DEFAULT_VARIANT_SET`) names the set of :data:`~ema_uq.gap.variant_catalogue.UNSEEN_SETS`.
+    ``cases_from: OTHER.yaml`` (a paired reference run) takes every key but the method and the
+    results folder from that protocol, so both runs diagnose the same cases by construction."""
     with open(path, encoding="utf-8") as fh:
         protocol = yaml.safe_load(fh)
+    if isinstance(protocol, dict) and "cases_from" in protocol:
+        cases = load_unseen_protocol(ROOT / protocol["cases_from"])
+        own = {k: v for k, v in protocol.items() if k != "cases_from"}
+        if set(own) != {"method_protocol", "results"}:
+            raise SystemExit(f"{path}: a protocol with cases_from sets only method_protocol and results, "
+                             f"not {sorted(set(own) - {'method_protocol', 'results'})}")
+        protocol = {**cases, **own}
     if not isinstance(protocol, dict) or "variants" not in protocol or not protocol.get("seeds"):
         raise SystemExit(f"{path}: not an unseen-variant protocol (needs seeds and variants)")
     variant_set = protocol.get("variant_set", DEFAULT_VARIANT_SET)

@@ -562,7 +562,28 @@ def test_the_third_unseen_set_has_cases_of_its_own():
     assert selfcheck.UNSEEN_SLOTS["UNSEEN_VARIANTS_3"] == (700, 800)
 
 
-def test_the_third_unseen_protocol_lists_its_cases():
+def _unseen_script(monkeypatch):
+    """benchmarks/gap_unseen.py as a module; it imports its sibling benchmarks/gap.py as ``gap``,
+    as when it is run."""
+    import sys
+
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    monkeypatch.setitem(sys.modules, "gap", _bench())
+    spec = importlib.util.spec_from_file_location("gap_unseen_bench", ROOT / "benchmarks" / "gap_unseen.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_a_paired_reference_protocol_cannot_change_the_cases(tmp_path, monkeypatch):
+    path = tmp_path / "reference.yaml"
+    path.write_text(yaml.safe_dump({"cases_from": "benchmarks/gap_unseen3.yaml", "seeds": [1],
+                                    "method_protocol": "benchmarks/gap_protocol_v4.yaml", "results": "x"}))
+    with pytest.raises(SystemExit, match="sets only method_protocol and results, not \\['seeds'\\]"):
+        _unseen_script(monkeypatch).load_unseen_protocol(path)
+
+
+def test_the_third_unseen_protocol_lists_its_cases(monkeypatch):
     with open(ROOT / "benchmarks" / "gap_unseen3.yaml", encoding="utf-8") as fh:
         protocol = yaml.safe_load(fh)
     from ema_uq.gap.variant_catalogue import UNSEEN_VARIANTS_3
@@ -571,8 +592,7 @@ def test_the_third_unseen_protocol_lists_its_cases():
     # written for version 5, never frozen; run on the frozen version 7, version 4 as the paired reference
     assert protocol["method_protocol"] == "benchmarks/gap_protocol_v7.yaml"
     assert protocol["results"] == "benchmarks/protocol_outcomes/method7/unseen3"
-    with open(ROOT / "benchmarks" / "gap_unseen3_v4.yaml", encoding="utf-8") as fh:
-        reference = yaml.safe_load(fh)
+    reference = _unseen_script(monkeypatch).load_unseen_protocol(ROOT / "benchmarks" / "gap_unseen3_v4.yaml")
     assert reference["method_protocol"] == "benchmarks/gap_protocol_v4.yaml"
     assert reference["results"] == "benchmarks/protocol_outcomes/method4/unseen3"
     assert {k: v for k, v in reference.items() if k not in ("method_protocol", "results")} == {
@@ -593,14 +613,7 @@ def test_the_third_unseen_protocol_lists_its_cases():
                                                     ("gap_unseen3.yaml", "stribeck_dwell"),
                                                     ("gap_unseen3_v4.yaml", "stribeck_dwell")])
 def test_the_unseen_protocol_describes_the_cases_it_runs(tmp_path, monkeypatch, protocol_file, variant):
-    import sys
-
-    # the script imports its sibling benchmarks/gap.py as ``gap``, as when it is run
-    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
-    monkeypatch.setitem(sys.modules, "gap", _bench())
-    spec = importlib.util.spec_from_file_location("gap_unseen_bench", ROOT / "benchmarks" / "gap_unseen.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = _unseen_script(monkeypatch)
     protocol = module.load_unseen_protocol(ROOT / "benchmarks" / protocol_file)
     variant_set = protocol.get("variant_set", module.DEFAULT_VARIANT_SET)
     cases = selfcheck.unseen_cases(int(protocol["seeds"][0]), protocol["concepts"], protocol["sensors"], variant_set)
