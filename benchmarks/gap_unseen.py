@@ -57,9 +57,10 @@ def load_unseen_protocol(path: Path) -> dict:
     if isinstance(protocol, dict) and "cases_from" in protocol:
         cases = load_unseen_protocol(ROOT / protocol["cases_from"])
         own = {k: v for k, v in protocol.items() if k != "cases_from"}
-        if set(own) != {"method_protocol", "results"}:
+        extra, missing = set(own) - {"method_protocol", "results"}, {"method_protocol", "results"} - set(own)
+        if extra or missing:
             raise SystemExit(f"{path}: a protocol with cases_from sets only method_protocol and results, "
-                             f"not {sorted(set(own) - {'method_protocol', 'results'})}")
+                             + (f"not {sorted(extra)}" if extra else f"and both; {sorted(missing)} is missing"))
         protocol = {**cases, **own}
     if not isinstance(protocol, dict) or "variants" not in protocol or not protocol.get("seeds"):
         raise SystemExit(f"{path}: not an unseen-variant protocol (needs seeds and variants)")

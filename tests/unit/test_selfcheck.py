@@ -581,6 +581,10 @@ def test_a_paired_reference_protocol_cannot_change_the_cases(tmp_path, monkeypat
                                     "method_protocol": "benchmarks/gap_protocol_v4.yaml", "results": "x"}))
     with pytest.raises(SystemExit, match="sets only method_protocol and results, not \\['seeds'\\]"):
         _unseen_script(monkeypatch).load_unseen_protocol(path)
+    path.write_text(yaml.safe_dump({"cases_from": "benchmarks/gap_unseen3.yaml",
+                                    "method_protocol": "benchmarks/gap_protocol_v4.yaml"}))
+    with pytest.raises(SystemExit, match="and both; \\['results'\\] is missing"):
+        _unseen_script(monkeypatch).load_unseen_protocol(path)
 
 
 def test_the_third_unseen_protocol_lists_its_cases(monkeypatch):
