@@ -14,6 +14,19 @@ from .localize import Localization, RegimeRms
 OPEN_SET_KEYS = ("family_probabilities", "evidence_tempering", "margin_evidence", "contenders", "structure_left",
                  "where_left", "verdict_reason", "state_predictable")
 
+#: a reported shrink counts as resolved when it lies at least this many of its standard errors
+#: above zero. The verdict is read on the selection part; the shrink is scored on a shorter
+#: part that did not select, so a named effect can close a gap there that its noise hides.
+SHRINK_RESOLVED_SE = 2.0
+
+
+def shrink_resolved(shrink: float | None, shrink_se: float | None) -> bool:
+    """Whether the honest shrink is resolved: finite, with a finite standard error, and at
+    least :data:`SHRINK_RESOLVED_SE` standard errors above zero."""
+    if shrink is None or shrink_se is None or not (np.isfinite(shrink) and np.isfinite(shrink_se)):
+        return False
+    return bool(shrink >= SHRINK_RESOLVED_SE * shrink_se)
+
 
 # ----------------------------------------------------------------------------------------
 # results
@@ -255,8 +268,15 @@ class GapResult:
         if self.verdict != "effect" or shrink is None:
             return []
         se = self.gap.get("shrink_se")
-        return [f"    shrink             = {shrink:.3f} +/- {se if se is not None else float('nan'):.3f} "
-                f"(scored on the {self.gap.get('shrink_record', 'held-out data')}, not used to select the winner)"]
+        lines = [f"    shrink             = {shrink:.3f} +/- {se if se is not None else float('nan'):.3f} "
+                 f"(scored on the {self.gap.get('shrink_record', 'held-out data')}, not used to select the winner)"]
+        if not shrink_resolved(shrink, se):
+            # the verdict stands on the selection part; say plainly that this record cannot confirm it
+            selection = self.gap.get("reproducible_shrink")
+            read = "" if selection is None or not np.isfinite(selection) else f" ({selection:.2f} there)"
+            lines.append(f"    shrink not resolved: less than {SHRINK_RESOLVED_SE:g} standard errors above zero on "
+                         f"this record; the effect is named on the selection part's shrink{read} alone")
+        return lines
 
     def to_json(self) -> dict[str, Any]:
         return _finite({

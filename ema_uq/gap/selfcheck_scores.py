@@ -14,6 +14,8 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 import numpy as np
 from scipy import stats
 
+from .result import SHRINK_RESOLVED_SE, shrink_resolved
+
 TARGET_TOP1, TARGET_FALSE_ALARM, TARGET_OUT_OF_CATALOGUE = 0.90, 0.05, 0.85
 TARGET_LEFT_OUT, TARGET_WRONG_CONFIDENT = 0.85, 0.02
 FALSE_ALARM_MIN_CASES, FALSE_ALARM_MIN_STRESSED = 60, 0.4
@@ -284,16 +286,18 @@ class SelfCheckResult:
 
     @property
     def shrink(self) -> dict[str, Any]:
-        """Honest shrink where the right family was named: median, quartiles, range, median se."""
+        """Honest shrink where the right family was named: median, quartiles, range, median se,
+        and how many of these shrinks are not resolved (:func:`ema_uq.gap.result.shrink_resolved`)."""
         found = [o for o in self.of("effect") if o.correct and np.isfinite(o.shrink)]
         values = np.array([o.shrink for o in found])
         if not found:
             return {"n": 0, "median": float("nan"), "q25": float("nan"), "q75": float("nan"),
-                    "min": float("nan"), "max": float("nan"), "median_se": float("nan")}
+                    "min": float("nan"), "max": float("nan"), "median_se": float("nan"), "not_resolved": 0}
         q25, median, q75 = np.percentile(values, [25, 50, 75])
         return {"n": len(found), "median": float(median), "q25": float(q25), "q75": float(q75),
                 "min": float(values.min()), "max": float(values.max()),
-                "median_se": float(np.nanmedian([o.shrink_se for o in found]))}
+                "median_se": float(np.nanmedian([o.shrink_se for o in found])),
+                "not_resolved": sum(not shrink_resolved(o.shrink, o.shrink_se) for o in found)}
 
     def rates(self) -> dict[str, dict[str, Any]]:
         """The rate of every target, by target key."""
@@ -363,7 +367,7 @@ class SelfCheckResult:
         s = self.shrink
         lines.append(f"    {'honest shrink (right family)':<36} median {s['median']:.3f}, quartiles {s['q25']:.3f}-"
                      f"{s['q75']:.3f}, range {s['min']:.3f}-{s['max']:.3f}, median se {s['median_se']:.3f} "
-                     f"(n = {s['n']})")
+                     f"(n = {s['n']}; {s.get('not_resolved', 0)} less than {SHRINK_RESOLVED_SE:g} se above zero)")
         return lines
 
     def confusion_lines(self, matrix: Mapping[str, Mapping[str, int]] | None = None) -> list[str]:

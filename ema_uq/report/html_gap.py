@@ -22,9 +22,14 @@ def _honest_shrink(summary: dict) -> str:
     """The shrink of an ``effect`` verdict, scored on held-out data not used to choose the effect."""
     if summary.get("shrink") is None:
         return "No shrink is reported: the verdict names no effect."
-    return (f"Shrink {_pm(summary['shrink'], summary.get('shrink_se'), 2)} (signed, ± block-bootstrap "
+    from ..gap.result import SHRINK_RESOLVED_SE, shrink_resolved
+    text = (f"Shrink {_pm(summary['shrink'], summary.get('shrink_se'), 2)} (signed, ± block-bootstrap "
             f"standard error), scored on {html.escape(str(summary.get('shrink_record', 'held-out data')))}, "
             "which did not take part in choosing the effect.")
+    if not shrink_resolved(summary["shrink"], summary.get("shrink_se")):
+        text += (f' <span class="flag">Not resolved: less than {SHRINK_RESOLVED_SE:g} standard errors above zero, '
+                 "so this record does not confirm the effect; it is named on the selection part alone.</span>")
+    return text
 
 
 def _open_set_parts(gap: dict) -> list[str]:
@@ -189,7 +194,8 @@ def _selfcheck_section(results: Path, evaluation: dict | None = None) -> str:
          (f"{_fmt(s['median'], 2)} ({_fmt(s['q25'], 2)}–{_fmt(s['q75'], 2)}), n = {s['n']}" if s.get("n", 0) >= 4
           else f"n = {s.get('n', 0)}: " + (", ".join(_fmt(c["shrink"], 2) for c in sc["cases"]
                                                       if c.get("shrink") is not None and c["correct"]) or "–")),
-         f"median se {_fmt(s['median_se'], 2)}" if s.get("n") else "–", "", ""]]
+         f"median se {_fmt(s['median_se'], 2)}" + (f"; {s['not_resolved']} not resolved" if "not_resolved" in s else "")
+         if s.get("n") else "–", "", ""]]
     cases = []
     for c in sc["cases"]:
         shrink = "" if c.get("shrink") is None else _pm(c["shrink"], c.get("shrink_se"), 2)

@@ -410,7 +410,20 @@ def test_effect_is_found_with_its_size(effect_result):
     assert g["shrink"] == pytest.approx(1 - g["shrink_gap_after"] / g["shrink_gap_before"])
     assert g["shrink"] > 0.8 and 0 < g["shrink_se"] < 0.2 and g["selection_shrink"] > 0.8
     assert best.shrink == pytest.approx(g["shrink"]) and best.selection_shrink == pytest.approx(g["selection_shrink"])
-    assert "scored on the second half" in r.summary()
+    assert "scored on the second half" in r.summary() and "not resolved" not in r.summary()
+
+
+def test_a_shrink_within_two_standard_errors_of_zero_is_reported_as_not_resolved(effect_result):
+    from ema_uq.gap.result import shrink_resolved
+    from ema_uq.report.html_gap import _honest_shrink
+
+    assert shrink_resolved(0.3, 0.1) and not shrink_resolved(0.3, 0.2) and not shrink_resolved(-0.46, 0.55)
+    assert not shrink_resolved(float("nan"), 0.1) and not shrink_resolved(0.5, float("nan"))
+    assert not shrink_resolved(None, None)
+    # the verdict stands on the selection part; the report says the scoring record does not confirm it
+    weak = replace(effect_result, gap={**effect_result.gap, "shrink": -0.46, "shrink_se": 0.55})
+    assert weak.verdict == "effect" and "shrink not resolved" in weak.summary()
+    assert "Not resolved" in _honest_shrink(weak.gap) and "Not resolved" not in _honest_shrink(effect_result.gap)
 
 
 def test_clean_data_give_none(none_result):
@@ -572,6 +585,7 @@ def test_self_check_scores_synthetic_outcomes():
                 ("target <= 0.05: met" in clean.summary()) is shown)
     s = result.shrink                                      # signed, unclipped, right family only
     assert s["n"] == 3 and s["median"] == pytest.approx(0.7) and s["min"] == pytest.approx(-0.2)
+    assert s["not_resolved"] == 1 and "1 less than 2 se above zero" in result.summary()   # the -0.2 +- 0.05
     low, high = result.false_alarms["interval95"]
     assert 0.001 < low < 0.002 and 0.24 < high < 0.25       # Clopper-Pearson of 1/20
     assert selfcheck.clopper_pearson(0, 20)[1] == pytest.approx(1 - 0.025 ** (1 / 20))
