@@ -632,3 +632,100 @@ def test_the_unseen_protocol_describes_the_cases_it_runs(tmp_path, monkeypatch, 
     path.write_text(yaml.safe_dump(dict(protocol, variant_set="UNSEEN_VARIANTS_9")), encoding="utf-8")
     with pytest.raises(SystemExit, match="names the variant set"):
         module.load_unseen_protocol(path)
+
+
+# --------------------------------------------------------------------------------------
+# two versions on the same block (benchmarks/gap_paired.py)
+# --------------------------------------------------------------------------------------
+def _paired_script(monkeypatch):
+    import sys
+
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    monkeypatch.setitem(sys.modules, "gap", _bench())
+    spec = importlib.util.spec_from_file_location("gap_paired_bench", ROOT / "benchmarks" / "gap_paired.py")
+    module = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, spec.name, module)     # its dataclass looks its module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+def _block(top1_right=True, left_out="unexplained"):
+    """Eight cases: two in catalogue, two left out, one out of catalogue, three without an effect."""
+    return selfcheck.SelfCheckResult([
+        _outcome("effect", "stribeck", "effect", "stribeck", index=0),
+        _outcome("effect", "backlash", "effect", "backlash" if top1_right else "stribeck", "low", index=1),
+        _outcome("left_out", "backlash", "unexplained", confidence="low", index=2),
+        _outcome("left_out", "stribeck", left_out, confidence="low", index=3),
+        _outcome("out_of_catalogue", None, "unexplained", confidence="low", index=4),
+        *[_outcome("none", None, "none", index=5 + i) for i in range(3)]], seed=1, quick=False, wall_time_s=1.0)
+
+
+def test_the_paired_rule_switches_only_when_the_challenger_loses_nothing_on_the_same_cases(monkeypatch):
+    paired = _paired_script(monkeypatch)
+    same = paired.read_rule(_block(), _block(), n_block=8)
+    assert same.complete and same.switch and not same.differing()
+    # one in-catalogue record fewer: the rule fails, and the differing case is listed
+    worse = paired.read_rule(_block(), _block(top1_right=False), n_block=8)
+    assert not worse.switch and [c[3] for c in worse.conditions][0] is False
+    assert len(worse.differing()) == 1 and "htls/full/backlash_v/1" in worse.differing()[0]
+    # a left-out record no longer flagged: both the paired count and the 0.85 floor fail
+    unflagged = paired.read_rule(_block(), _block(left_out="none"), n_block=8)
+    failed = [label for label, *_, held in unflagged.conditions if not held]
+    assert failed == ["left out flagged", "challenger's left out flagged"] and not unflagged.switch
+    # the incumbent doing worse on the same cases does not stop the challenger
+    assert paired.read_rule(_block(top1_right=False), _block(), n_block=8).switch
+    # a block not yet complete decides nothing, however the counts stand
+    partial = paired.read_rule(_block(), _block(), n_block=176)
+    assert not partial.complete and not partial.switch and "PARTIAL (8 of 176 cases)" in partial.summary()
+    assert "not decided" in partial.summary()
+
+
+def test_the_paired_reading_needs_the_same_block_and_only_its_cases(monkeypatch, tmp_path):
+    paired = _paired_script(monkeypatch)
+    protocol = yaml.safe_load((ROOT / "benchmarks" / "gap_protocol_v7.yaml").read_text(encoding="utf-8"))
+    protocol["blocks"]["evaluation"]["seeds"] = [9001]
+    files = {}
+    for name, seeds in (("a", [9001]), ("b", [9001]), ("c", [9002])):
+        files[name] = tmp_path / f"{name}.yaml"
+        files[name].write_text(yaml.safe_dump({**protocol, "blocks": {**protocol["blocks"], "evaluation": {
+            "seeds": seeds, "spent": []}}}))
+    with pytest.raises(SystemExit, match="different evaluation blocks"):
+        paired.compare((files["a"], tmp_path / "ra"), (files["c"], tmp_path / "rc"))
+    cases = [c for c in selfcheck.build_cases(seed=9001, none_per_set=16)][:3]
+    for folder, verdicts in (("ra", ("none", "none", "none")), ("rb", ("none", "unexplained", None))):
+        for case, verdict in zip(cases, verdicts):
+            if verdict is None:
+                continue
+            out = tmp_path / folder / "evaluation" / "abc" / "seed9001" / f"{case.case_id.replace('/', '__')}.json"
+            out.parent.mkdir(parents=True, exist_ok=True)
+            outcome = selfcheck.CaseOutcome(case, verdict, None, None, "low", float("nan"), float("nan"), None,
+                                            0.02, 0.02, {}, 1.0)
+            out.write_text(json.dumps(outcome.to_json()))
+    reading = paired.compare((files["a"], tmp_path / "ra"), (files["b"], tmp_path / "rb"))
+    assert len(reading.incumbent.outcomes) == 2 and not reading.complete and reading.n_block == 176
+    # an outcome of another block in a results folder stops the reading
+    stray = selfcheck.build_cases(seed=9002, none_per_set=16)[3]
+    (tmp_path / "rb" / "evaluation" / "abc" / "seed9001" / "stray.json").write_text(json.dumps(
+        selfcheck.CaseOutcome(stray, "none", None, None, "low", float("nan"), float("nan"), None, 0.02, 0.02, {},
+                              1.0).to_json()))
+    with pytest.raises(SystemExit, match="not cases of the block"):
+        paired.compare((files["a"], tmp_path / "ra"), (files["b"], tmp_path / "rb"))
+
+
+@pytest.mark.parametrize("version", [4, 7])
+def test_the_paired_block_protocols_freeze_their_versions_method_on_a_block_no_protocol_has_run(version):
+    bench = _bench()
+    paired = bench.load_protocol(ROOT / "benchmarks" / f"gap_protocol_paired5209_v{version}.yaml")
+    own = bench.load_protocol(ROOT / "benchmarks" / f"gap_protocol_v{version}.yaml")
+    assert paired["method_version"] == own["method_version"] == version
+    assert bench.protocol_settings(paired) == bench.protocol_settings(own)
+    assert paired["catalogue"] == own["catalogue"] and paired["thresholds"] == own["thresholds"]
+    assert paired["selfcheck"] == own["selfcheck"]
+    assert paired["blocks"]["evaluation"]["seeds"] == [5209]
+    # no other protocol has used 5209, as an evaluation block or spent
+    for other in (ROOT / "benchmarks").glob("gap_protocol*.yaml"):
+        if "paired5209" in other.name:
+            continue
+        blocks = bench.load_protocol(other)["blocks"]
+        used = set(blocks["evaluation"]["seeds"]) | {s for b in blocks["evaluation"].get("spent") or [] for s in b}
+        assert 5209 not in used | set(blocks["development"]["seeds"]), other.name

@@ -1,0 +1,172 @@
+"""Gap diagnosis: two frozen method versions on the same evaluation block, read against a rule
+fixed before either ran.
+
+A comparison of two versions on blocks of different seeds mixes the method with the draw of
+the records (one binomial standard error at the rates seen is about 2.5 of 48 cases). Here the
+incumbent (the default method) and the challenger run the very same cases: two protocol files
+frozen with the same evaluation seeds, each run with ``benchmarks/gap.py --protocol P --block
+evaluation --results R``. This script reads their per-case outcomes, checks that they cover the
+same cases, prints both versions' figures side by side with every case whose verdict differs,
+and reads the rule:
+
+* the challenger's in-catalogue top-1 count is at least the incumbent's;
+* its left-out and out-of-catalogue flag counts are each at least the incumbent's (no slack);
+* it names a wrong family with high confidence, and names a family on a no-effect record, no
+  more often than the incumbent;
+* its own left-out and out-of-catalogue flag rates are each at least 0.85, its wrong family with
+  high confidence at most 0.02 of the records that carry an effect, and at most 0.05 of the
+  no-effect records name a family.
+
+The rule is read only when both versions have run every case of the block; before that the
+script prints the shared cases' figures marked partial, which decide nothing.
+
+Usage: python benchmarks/gap_paired.py --incumbent PROTOCOL RESULTS --challenger PROTOCOL RESULTS
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+from ema_uq.gap.selfcheck import build_cases
+from ema_uq.gap.selfcheck_scores import Case, CaseOutcome, SelfCheckResult
+from gap import load_protocol
+
+#: the challenger's own floors and ceilings, conditions (b) and (c) of the rules before
+FLAG_FLOOR = 0.85
+WRONG_CONFIDENT_CEILING = 0.02
+FALSE_ALARM_CEILING = 0.05
+
+#: (label, SelfCheckResult property, the challenger must be at least / at most the incumbent)
+PAIRED_CONDITIONS = (("in-catalogue top-1", "top1", ">="),
+                     ("left out flagged", "left_out_flagged", ">="),
+                     ("out of catalogue flagged", "out_of_catalogue_flagged", ">="),
+                     ("wrong family, high confidence", "wrong_family_confident", "<="),
+                     ("no-effect records naming a family", "false_alarms", "<="))
+
+
+@dataclass
+class PairedReading:
+    """Both versions' outcomes on the cases of one block: ``complete`` when each has every case
+    the block's protocol lists; ``conditions`` (label, incumbent count, challenger count, held)."""
+
+    incumbent: SelfCheckResult
+    challenger: SelfCheckResult
+    complete: bool
+    n_block: int
+    conditions: list[tuple[str, str, str, bool]]
+
+    @property
+    def switch(self) -> bool:
+        """The challenger replaces the incumbent: the block is complete and every condition holds."""
+        return self.complete and all(held for *_, held in self.conditions)
+
+    def differing(self) -> list[str]:
+        """The cases whose verdict, family or confidence differ between the versions."""
+        theirs = {o.case.case_id: o for o in self.challenger.outcomes}
+        lines = []
+        for mine in self.incumbent.outcomes:
+            other = theirs[mine.case.case_id]
+            if (mine.verdict, mine.family, mine.confidence) != (other.verdict, other.family, other.confidence):
+                lines.append(f"    {mine.case.case_id}: {mine.label} ({mine.confidence}, "
+                             f"{'ok' if mine.correct else 'wrong'}) -> {other.label} ({other.confidence}, "
+                             f"{'ok' if other.correct else 'wrong'})")
+        return lines
+
+    def summary(self) -> str:
+        n = len(self.incumbent.outcomes)
+        state = "complete" if self.complete else f"PARTIAL ({n} of {self.n_block} cases): decides nothing"
+        lines = [f"[[Paired block]] {state}",
+                 f"    {'':<36}{'incumbent':>14}{'challenger':>14}  condition"]
+        for label, mine, theirs, held in self.conditions:
+            lines.append(f"    {label:<36}{mine:>14}{theirs:>14}  {'holds' if held else 'FAILS'}")
+        lines.append(f"    cases with another verdict, family or confidence: {len(self.differing())}")
+        lines += self.differing()
+        lines.append("    the challenger becomes the default: "
+                     + ("yes" if self.switch else "no" if self.complete else "not decided (block incomplete)"))
+        return "\n".join(lines)
+
+
+def _count(result: SelfCheckResult, prop: str) -> tuple[int, int, float]:
+    rate = getattr(result, prop)
+    return int(rate["count"]), int(rate["n"]), float(rate["value"])
+
+
+def read_rule(incumbent: SelfCheckResult, challenger: SelfCheckResult, n_block: int) -> PairedReading:
+    """The rule of the module docstring on two versions' outcomes of the same cases."""
+    conditions = []
+    for label, prop, side in PAIRED_CONDITIONS:
+        (a, n, _), (b, m, _) = _count(incumbent, prop), _count(challenger, prop)
+        conditions.append((label, f"{a}/{n}", f"{b}/{m}", b >= a if side == ">=" else b <= a))
+    for label, prop, bound, side in (("challenger's left out flagged", "left_out_flagged", FLAG_FLOOR, ">="),
+                                     ("challenger's out of catalogue flagged", "out_of_catalogue_flagged",
+                                      FLAG_FLOOR, ">="),
+                                     ("challenger's wrong family, high", "wrong_family_confident",
+                                      WRONG_CONFIDENT_CEILING, "<="),
+                                     ("challenger's no-effect naming", "false_alarms", FALSE_ALARM_CEILING, "<=")):
+        count, n, value = _count(challenger, prop)
+        conditions.append((label, f"{side} {bound:g}", f"{count}/{n}", value >= bound if side == ">=" else value <= bound))
+    complete = len(incumbent.outcomes) == len(challenger.outcomes) == n_block
+    return PairedReading(incumbent, challenger, complete, n_block, conditions)
+
+
+def _outcomes(results: Path) -> dict[str, CaseOutcome]:
+    """The per-case outcomes of an evaluation block under ``results`` (one sources folder)."""
+    folders = sorted(p for p in (Path(results) / "evaluation").glob("*") if p.is_dir())
+    if len(folders) > 1:
+        raise SystemExit(f"{results}/evaluation holds outcomes of {len(folders)} sources hashes "
+                         f"({', '.join(f.name for f in folders)}); keep one per results folder")
+    files = sorted(folders[0].glob("seed*/*.json")) if folders else []
+    out = {}
+    for file in files:
+        outcome = CaseOutcome.from_json(json.loads(file.read_text(encoding="utf-8")))
+        if outcome.case.case_id in out:
+            raise SystemExit(f"two outcomes of case {outcome.case.case_id} under {folders[0]}; keep one results "
+                             "folder per version and block")
+        out[outcome.case.case_id] = outcome
+    return out
+
+
+def block_cases(protocol: dict) -> dict[str, Case]:
+    """Every case of the protocol's evaluation block, by case id (an id names a slot, the same in
+    every block; the case itself carries its block's record seed)."""
+    settings = protocol["selfcheck"]
+    return {c.case_id: c for seed in protocol["blocks"]["evaluation"]["seeds"]
+            for c in build_cases(settings["concepts"], seed=int(seed), sensors=settings["sensors"],
+                                 none_per_set=int(settings["none_per_set"]), kinds=settings["kinds"])}
+
+
+def compare(incumbent: tuple[str, str], challenger: tuple[str, str]) -> PairedReading:
+    """Read the rule on the outcomes of two (protocol, results folder) pairs of the same block."""
+    protocols = [load_protocol(p) for p, _ in (incumbent, challenger)]
+    blocks = [p["blocks"]["evaluation"]["seeds"] for p in protocols]
+    if blocks[0] != blocks[1]:
+        raise SystemExit(f"the protocols name different evaluation blocks ({blocks[0]} and {blocks[1]}); a paired "
+                         "reading needs the same seeds: freeze both with the same --evaluation-seeds")
+    cases = block_cases(protocols[0])
+    if cases != block_cases(protocols[1]):
+        raise SystemExit("the protocols build different cases from the same seeds (their self-check settings "
+                         "differ); freeze both with the same case list")
+    ids = list(cases)
+    mine, theirs = _outcomes(Path(incumbent[1])), _outcomes(Path(challenger[1]))
+    foreign = sorted({o.case.case_id for o in [*mine.values(), *theirs.values()]
+                      if cases.get(o.case.case_id) != o.case})
+    if foreign:
+        raise SystemExit(f"{len(foreign)} outcome(s) are not cases of the block (e.g. {foreign[0]}); "
+                         "point each version at its own results folder of this block")
+    shared = [i for i in ids if i in mine and i in theirs]
+    return read_rule(SelfCheckResult([mine[i] for i in shared], int(blocks[0][0]), False, 0.0),
+                     SelfCheckResult([theirs[i] for i in shared], int(blocks[0][0]), False, 0.0), len(ids))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--incumbent", nargs=2, required=True, metavar=("PROTOCOL", "RESULTS"))
+    parser.add_argument("--challenger", nargs=2, required=True, metavar=("PROTOCOL", "RESULTS"))
+    args = parser.parse_args()
+    print(compare(tuple(args.incumbent), tuple(args.challenger)).summary())
+
+
+if __name__ == "__main__":
+    main()
