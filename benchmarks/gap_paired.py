@@ -17,10 +17,13 @@ and reads the rule:
   high confidence at most 0.02 of the records that carry an effect, and at most 0.05 of the
   no-effect records name a family.
 
-The rule is read only when both versions have run every case of the block; before that the
-script prints the shared cases' figures marked partial, which decide nothing.
+The rule is read only when both versions have run every case of the block. Before that the
+script prints only how many cases each version has run: a look at partial figures invites
+stopping a run early on a good or a bad look. ``--partial-figures`` prints the shared cases'
+figures anyway, marked partial (for a check of the script, not of the methods).
 
 Usage: python benchmarks/gap_paired.py --incumbent PROTOCOL RESULTS --challenger PROTOCOL RESULTS
+                                       [--partial-figures]
 """
 from __future__ import annotations
 
@@ -48,14 +51,16 @@ PAIRED_CONDITIONS = (("in-catalogue top-1", "top1", ">="),
 
 @dataclass
 class PairedReading:
-    """Both versions' outcomes on the cases of one block: ``complete`` when each has every case
-    the block's protocol lists; ``conditions`` (label, incumbent count, challenger count, held)."""
+    """Both versions' outcomes on the cases of one block that both have run: ``complete`` when
+    each has every case the block's protocol lists; ``conditions`` (label, incumbent count,
+    challenger count, held); ``runs`` how many cases each version has run on its own."""
 
     incumbent: SelfCheckResult
     challenger: SelfCheckResult
     complete: bool
     n_block: int
     conditions: list[tuple[str, str, str, bool]]
+    runs: tuple[int, int] = (0, 0)
 
     @property
     def switch(self) -> bool:
@@ -74,7 +79,10 @@ class PairedReading:
                              f"{'ok' if other.correct else 'wrong'})")
         return lines
 
-    def summary(self) -> str:
+    def summary(self, partial_figures: bool = False) -> str:
+        if not self.complete and not partial_figures:
+            return (f"[[Paired block]] incomplete: the incumbent has run {self.runs[0]} and the challenger "
+                    f"{self.runs[1]} of its {self.n_block} cases; the rule is read when both have run every case")
         n = len(self.incumbent.outcomes)
         state = "complete" if self.complete else f"PARTIAL ({n} of {self.n_block} cases): decides nothing"
         lines = [f"[[Paired block]] {state}",
@@ -93,7 +101,8 @@ def _count(result: SelfCheckResult, prop: str) -> tuple[int, int, float]:
     return int(rate["count"]), int(rate["n"]), float(rate["value"])
 
 
-def read_rule(incumbent: SelfCheckResult, challenger: SelfCheckResult, n_block: int) -> PairedReading:
+def read_rule(incumbent: SelfCheckResult, challenger: SelfCheckResult, n_block: int,
+              runs: tuple[int, int] | None = None) -> PairedReading:
     """The rule of the module docstring on two versions' outcomes of the same cases."""
     conditions = []
     for label, prop, side in PAIRED_CONDITIONS:
@@ -108,7 +117,8 @@ def read_rule(incumbent: SelfCheckResult, challenger: SelfCheckResult, n_block: 
         count, n, value = _count(challenger, prop)
         conditions.append((label, f"{side} {bound:g}", f"{count}/{n}", value >= bound if side == ">=" else value <= bound))
     complete = len(incumbent.outcomes) == len(challenger.outcomes) == n_block
-    return PairedReading(incumbent, challenger, complete, n_block, conditions)
+    return PairedReading(incumbent, challenger, complete, n_block, conditions,
+                         runs or (len(incumbent.outcomes), len(challenger.outcomes)))
 
 
 def _outcomes(results: Path) -> dict[str, CaseOutcome]:
@@ -157,15 +167,18 @@ def compare(incumbent: tuple[str, str], challenger: tuple[str, str]) -> PairedRe
                          "point each version at its own results folder of this block")
     shared = [i for i in ids if i in mine and i in theirs]
     return read_rule(SelfCheckResult([mine[i] for i in shared], int(blocks[0][0]), False, 0.0),
-                     SelfCheckResult([theirs[i] for i in shared], int(blocks[0][0]), False, 0.0), len(ids))
+                     SelfCheckResult([theirs[i] for i in shared], int(blocks[0][0]), False, 0.0), len(ids),
+                     runs=(len(mine), len(theirs)))
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--incumbent", nargs=2, required=True, metavar=("PROTOCOL", "RESULTS"))
     parser.add_argument("--challenger", nargs=2, required=True, metavar=("PROTOCOL", "RESULTS"))
+    parser.add_argument("--partial-figures", action="store_true",
+                        help="print the shared cases' figures before the block is complete (they decide nothing)")
     args = parser.parse_args()
-    print(compare(tuple(args.incumbent), tuple(args.challenger)).summary())
+    print(compare(tuple(args.incumbent), tuple(args.challenger)).summary(args.partial_figures))
 
 
 if __name__ == "__main__":

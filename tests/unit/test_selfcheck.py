@@ -676,8 +676,12 @@ def test_the_paired_rule_switches_only_when_the_challenger_loses_nothing_on_the_
     assert paired.read_rule(_block(top1_right=False), _block(), n_block=8).switch
     # a block not yet complete decides nothing, however the counts stand
     partial = paired.read_rule(_block(), _block(), n_block=176)
-    assert not partial.complete and not partial.switch and "PARTIAL (8 of 176 cases)" in partial.summary()
-    assert "not decided" in partial.summary()
+    assert not partial.complete and not partial.switch
+    # until then it says how far each run is, and shows figures only when asked
+    assert "has run 8 and the challenger 8 of its 176 cases" in partial.summary()
+    assert "top-1" not in partial.summary()
+    assert "PARTIAL (8 of 176 cases)" in partial.summary(partial_figures=True)
+    assert "not decided" in partial.summary(partial_figures=True)
 
 
 def test_the_paired_reading_needs_the_same_block_and_only_its_cases(monkeypatch, tmp_path):
@@ -703,6 +707,7 @@ def test_the_paired_reading_needs_the_same_block_and_only_its_cases(monkeypatch,
             out.write_text(json.dumps(outcome.to_json()))
     reading = paired.compare((files["a"], tmp_path / "ra"), (files["b"], tmp_path / "rb"))
     assert len(reading.incumbent.outcomes) == 2 and not reading.complete and reading.n_block == 176
+    assert reading.runs == (3, 2) and "incumbent has run 3 and the challenger 2" in reading.summary()
     # an outcome of another block in a results folder stops the reading
     stray = selfcheck.build_cases(seed=9002, none_per_set=16)[3]
     (tmp_path / "rb" / "evaluation" / "abc" / "seed9001" / "stray.json").write_text(json.dumps(
