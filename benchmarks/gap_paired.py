@@ -147,6 +147,12 @@ def block_cases(protocol: dict) -> dict[str, Case]:
                                  none_per_set=int(settings["none_per_set"]), kinds=settings["kinds"])}
 
 
+def _record(case: Case) -> tuple:
+    """What makes a case the same record in both versions: its slot and the record drawn for it.
+    The candidate list is the method's own (a version with other forms offers other candidates)."""
+    return (case.case_id, case.concept, case.sensors, case.kind, case.variant, case.family, case.seed, case.stressed)
+
+
 def compare(incumbent: tuple[str, str], challenger: tuple[str, str]) -> PairedReading:
     """Read the rule on the outcomes of two (protocol, results folder) pairs of the same block."""
     protocols = [load_protocol(p) for p, _ in (incumbent, challenger)]
@@ -161,7 +167,7 @@ def compare(incumbent: tuple[str, str], challenger: tuple[str, str]) -> PairedRe
     ids = list(cases)
     mine, theirs = _outcomes(Path(incumbent[1])), _outcomes(Path(challenger[1]))
     foreign = sorted({o.case.case_id for o in [*mine.values(), *theirs.values()]
-                      if cases.get(o.case.case_id) != o.case})
+                      if o.case.case_id not in cases or _record(cases[o.case.case_id]) != _record(o.case)})
     if foreign:
         raise SystemExit(f"{len(foreign)} outcome(s) are not cases of the block (e.g. {foreign[0]}); "
                          "point each version at its own results folder of this block")
