@@ -33,13 +33,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ema_uq.gap.selfcheck import build_cases
-from ema_uq.gap.selfcheck_scores import Case, CaseOutcome, SelfCheckResult
+from ema_uq.gap.selfcheck_scores import TARGETS, Case, CaseOutcome, SelfCheckResult
 from gap import load_protocol
 
-#: the challenger's own floors and ceilings, conditions (b) and (c) of the rules before
-FLAG_FLOOR = 0.85
-WRONG_CONFIDENT_CEILING = 0.02
-FALSE_ALARM_CEILING = 0.05
+#: the self-check targets the challenger must also meet on its own, as point values (conditions
+#: (b) and (c) of the rules before): flags >= 0.85, wrong family high <= 0.02, no-effect naming <= 0.05
+OWN_TARGETS = {"left_out_flagged": "left out flagged", "out_of_catalogue_flagged": "out of catalogue flagged",
+               "wrong_family_confident": "wrong family, high", "false_alarm_rate": "no-effect naming"}
 
 #: (label, SelfCheckResult property, the challenger must be at least / at most the incumbent)
 PAIRED_CONDITIONS = (("in-catalogue top-1", "top1", ">="),
@@ -108,14 +108,11 @@ def read_rule(incumbent: SelfCheckResult, challenger: SelfCheckResult, n_block: 
     for label, prop, side in PAIRED_CONDITIONS:
         (a, n, _), (b, m, _) = _count(incumbent, prop), _count(challenger, prop)
         conditions.append((label, f"{a}/{n}", f"{b}/{m}", b >= a if side == ">=" else b <= a))
-    for label, prop, bound, side in (("challenger's left out flagged", "left_out_flagged", FLAG_FLOOR, ">="),
-                                     ("challenger's out of catalogue flagged", "out_of_catalogue_flagged",
-                                      FLAG_FLOOR, ">="),
-                                     ("challenger's wrong family, high", "wrong_family_confident",
-                                      WRONG_CONFIDENT_CEILING, "<="),
-                                     ("challenger's no-effect naming", "false_alarms", FALSE_ALARM_CEILING, "<=")):
+    for key, label in OWN_TARGETS.items():
+        prop, bound, side = TARGETS[key]
         count, n, value = _count(challenger, prop)
-        conditions.append((label, f"{side} {bound:g}", f"{count}/{n}", value >= bound if side == ">=" else value <= bound))
+        conditions.append((f"challenger's {label}", f"{side} {bound:g}", f"{count}/{n}",
+                           value >= bound if side == ">=" else value <= bound))
     complete = len(incumbent.outcomes) == len(challenger.outcomes) == n_block
     return PairedReading(incumbent, challenger, complete, n_block, conditions,
                          runs or (len(incumbent.outcomes), len(challenger.outcomes)))
