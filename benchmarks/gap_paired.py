@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import argparse
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from ema_uq.gap.selfcheck import build_cases
@@ -89,8 +89,9 @@ class PairedReading:
                  f"    {'':<36}{'incumbent':>14}{'challenger':>14}  condition"]
         for label, mine, theirs, held in self.conditions:
             lines.append(f"    {label:<36}{mine:>14}{theirs:>14}  {'holds' if held else 'FAILS'}")
-        lines.append(f"    cases with another verdict, family or confidence: {len(self.differing())}")
-        lines += self.differing()
+        differing = self.differing()
+        lines.append(f"    cases with another verdict, family or confidence: {len(differing)}")
+        lines += differing
         lines.append("    the challenger becomes the default: "
                      + ("yes" if self.switch else "no" if self.complete else "not decided (block incomplete)"))
         return "\n".join(lines)
@@ -144,10 +145,10 @@ def block_cases(protocol: dict) -> dict[str, Case]:
                                  none_per_set=int(settings["none_per_set"]), kinds=settings["kinds"])}
 
 
-def _record(case: Case) -> tuple:
-    """What makes a case the same record in both versions: its slot and the record drawn for it.
-    The candidate list is the method's own (a version with other forms offers other candidates)."""
-    return (case.case_id, case.concept, case.sensors, case.kind, case.variant, case.family, case.seed, case.stressed)
+def _record(case: Case) -> Case:
+    """What makes a case the same record in both versions: everything but the candidate list,
+    which is the method's own (a version with other forms offers other candidates)."""
+    return replace(case, candidates=None)
 
 
 def compare(incumbent: tuple[str, str], challenger: tuple[str, str]) -> PairedReading:
@@ -157,10 +158,10 @@ def compare(incumbent: tuple[str, str], challenger: tuple[str, str]) -> PairedRe
     if blocks[0] != blocks[1]:
         raise SystemExit(f"the protocols name different evaluation blocks ({blocks[0]} and {blocks[1]}); a paired "
                          "reading needs the same seeds: freeze both with the same --evaluation-seeds")
-    cases = block_cases(protocols[0])
-    if cases != block_cases(protocols[1]):
+    if protocols[0]["selfcheck"] != protocols[1]["selfcheck"]:
         raise SystemExit("the protocols build different cases from the same seeds (their self-check settings "
                          "differ); freeze both with the same case list")
+    cases = block_cases(protocols[0])
     ids = list(cases)
     mine, theirs = _outcomes(Path(incumbent[1])), _outcomes(Path(challenger[1]))
     foreign = sorted({o.case.case_id for o in [*mine.values(), *theirs.values()]

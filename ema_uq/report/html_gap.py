@@ -22,7 +22,7 @@ def _honest_shrink(summary: dict) -> str:
     """The shrink of an ``effect`` verdict, scored on held-out data not used to choose the effect."""
     if summary.get("shrink") is None:
         return "No shrink is reported: the verdict names no effect."
-    from ..gap.result import SHRINK_RESOLVED_SE, shrink_resolved
+    from ..gap.result import SHRINK_RESOLVED_SE, shrink_resolved    # the gap package is heavy; only here
     text = (f"Shrink {_pm(summary['shrink'], summary.get('shrink_se'), 2)} (signed, ± block-bootstrap "
             f"standard error), scored on {html.escape(str(summary.get('shrink_record', 'held-out data')))}, "
             "which did not take part in choosing the effect.")
