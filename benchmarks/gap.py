@@ -416,6 +416,69 @@ def library_versions() -> dict[str, str]:
             "numba": numba.__version__}
 
 
+#: one line per run of a block's seed folder: when it started, its library versions, the cases
+#: already stored (so the cases each environment diagnosed can be told apart afterwards)
+ENVIRONMENTS = "environments.jsonl"
+
+
+def _stored_cases(folder: Path) -> list[str]:
+    return sorted(p.name for p in Path(folder).glob("*.json"))
+
+
+def record_environment(folder: Path, *, started: str | None = None) -> str | None:
+    """Append this run's line to ``folder/environments.jsonl`` (the folder of one seed's outcomes)
+    and return a note when its library versions differ from an earlier run's. A block that spans
+    sessions or machines then says which cases each environment diagnosed
+    (:func:`cases_by_environment`): the last digits of a fit move with the libraries
+    (:func:`library_versions`), and a verdict that rests on them could differ."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    current = library_versions()
+    earlier = [r["libraries"] for r in _environment_records(folder)]
+    line = {"started": started or datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            "libraries": current, "stored": _stored_cases(folder)}
+    with open(folder / ENVIRONMENTS, "a", encoding="utf-8") as fh:
+        fh.write(json.dumps(line) + "\n")
+    others = [r for r in earlier if r != current]
+    if not others:
+        return None
+    return (f"note: {folder} holds cases diagnosed with {others[-1]}, this run uses {current}; "
+            "the block's outcomes will say which cases each diagnosed (benchmarks/gap_paired.py)")
+
+
+def _environment_records(folder: Path) -> list[dict]:
+    path = Path(folder) / ENVIRONMENTS
+    if not path.is_file():
+        return []
+    records = []
+    for number, text in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+        try:
+            record = json.loads(text)
+            record["libraries"], record["stored"]
+        except (ValueError, TypeError, KeyError) as exc:
+            raise SystemExit(f"{path}, line {number}: not an environment record ({exc}); "
+                             "mend or remove that line") from None
+        records.append(record)
+    return records
+
+
+def cases_by_environment(folder: Path) -> list[tuple[dict | None, list[str]]]:
+    """(library versions, case files) per run of one seed folder, in the order the runs started;
+    ``None`` for the cases stored before the first record. A case belongs to the first run that
+    did not find it stored. Two runs of one folder at the same time (scattered chunks) cannot be
+    told apart this way: their cases go to the later one."""
+    records = _environment_records(folder)
+    final = _stored_cases(folder)
+    seen = set(records[0]["stored"]) if records else set(final)
+    groups = [(None, sorted(seen & set(final)))]
+    for i, record in enumerate(records):
+        after = set(records[i + 1]["stored"]) if i + 1 < len(records) else set(final)
+        new = sorted((after & set(final)) - seen)
+        groups.append((record["libraries"], new))
+        seen |= set(new)
+    return [(libs, files) for libs, files in groups if files]
+
+
 def _libraries_note(protocol: dict) -> str:
     """What a refused attestation should say about the environment: the libraries recorded with
     the accepted sources (the freeze and each attestation) against this run's."""
@@ -511,6 +574,9 @@ def run_block(protocol: dict, block: str, out_dir: Path, jobs: int = 1, chunk: s
     current = outcome_hash(protocol, root)
     outcomes, wall, parts, used = [], 0.0, {}, {}
     for seed in seeds:
+        note = record_environment(Path(out_dir) / block / current[:12] / f"seed{seed}")
+        if note:
+            print(note, flush=True)
         part = self_check(seed=int(seed), concepts=settings["concepts"], sensors=settings["sensors"],
                           kinds=settings["kinds"], none_per_set=int(settings["none_per_set"]), jobs=jobs,
                           settings=diagnosis_settings,

@@ -34,7 +34,7 @@ from pathlib import Path
 
 from ema_uq.gap.selfcheck import build_cases
 from ema_uq.gap.selfcheck_scores import TARGETS, Case, CaseOutcome, SelfCheckResult
-from gap import load_protocol
+from gap import cases_by_environment, load_protocol
 
 #: the self-check targets the challenger must also meet on its own, as point values (conditions
 #: (b) and (c) of the rules before): flags >= 0.85, wrong family high <= 0.02, no-effect naming <= 0.05
@@ -53,7 +53,9 @@ PAIRED_CONDITIONS = (("in-catalogue top-1", "top1", ">="),
 class PairedReading:
     """Both versions' outcomes on the cases of one block that both have run: ``complete`` when
     each has every case the block's protocol lists; ``conditions`` (label, incumbent count,
-    challenger count, held); ``runs`` how many cases each version has run on its own."""
+    challenger count, held); ``runs`` how many cases each version has run on its own;
+    ``environments`` per version, the library versions its cases were diagnosed with and how many
+    cases each (None: stored before runs recorded them)."""
 
     incumbent: SelfCheckResult
     challenger: SelfCheckResult
@@ -61,6 +63,7 @@ class PairedReading:
     n_block: int
     conditions: list[tuple[str, str, str, bool]]
     runs: tuple[int, int] = (0, 0)
+    environments: tuple[list, list] = ([], [])
 
     @property
     def switch(self) -> bool:
@@ -79,10 +82,27 @@ class PairedReading:
                              f"{'ok' if other.correct else 'wrong'})")
         return lines
 
+    def environment_lines(self) -> list[str]:
+        """Which library versions diagnosed how many cases of each version; a warning when the
+        block spans more than one (a fit's last digits move with them)."""
+        lines, distinct = [], []
+        for name, groups in zip(("incumbent", "challenger"), self.environments):
+            for libraries, n in groups:
+                where = ("stored before runs recorded their libraries" if libraries is None
+                         else ", ".join(f"{k} {v}" for k, v in libraries.items()))
+                lines.append(f"    {name}: {n} cases, {where}")
+                if libraries is not None and libraries not in distinct:
+                    distinct.append(libraries)
+        if len(distinct) > 1:
+            lines.append(f"    the block spans {len(distinct)} library environments: a verdict that rests on "
+                         "the last digits of a fit could differ between them")
+        return lines
+
     def summary(self, partial_figures: bool = False) -> str:
         if not self.complete and not partial_figures:
-            return (f"[[Paired block]] incomplete: the incumbent has run {self.runs[0]} and the challenger "
-                    f"{self.runs[1]} of its {self.n_block} cases; the rule is read when both have run every case")
+            return "\n".join([f"[[Paired block]] incomplete: the incumbent has run {self.runs[0]} and the challenger "
+                              f"{self.runs[1]} of its {self.n_block} cases; the rule is read when both have run every "
+                              "case", *self.environment_lines()])
         n = len(self.incumbent.outcomes)
         state = "complete" if self.complete else f"PARTIAL ({n} of {self.n_block} cases): decides nothing"
         lines = [f"[[Paired block]] {state}",
@@ -94,7 +114,7 @@ class PairedReading:
         lines += differing
         lines.append("    the challenger becomes the default: "
                      + ("yes" if self.switch else "no" if self.complete else "not decided (block incomplete)"))
-        return "\n".join(lines)
+        return "\n".join(lines + self.environment_lines())
 
 
 def _count(result: SelfCheckResult, prop: str) -> tuple[int, int, float]:
@@ -136,6 +156,20 @@ def _outcomes(results: Path) -> dict[str, CaseOutcome]:
     return out
 
 
+def environments(results: Path) -> list[tuple[dict | None, int]]:
+    """(library versions, number of cases) over the seed folders of one results folder's block."""
+    counts: list[tuple[dict | None, int]] = []
+    for folder in sorted((Path(results) / "evaluation").glob("*/seed*")):
+        for libraries, files in cases_by_environment(folder):
+            for i, (known, n) in enumerate(counts):
+                if known == libraries:
+                    counts[i] = (known, n + len(files))
+                    break
+            else:
+                counts.append((libraries, len(files)))
+    return counts
+
+
 def block_cases(protocol: dict) -> dict[str, Case]:
     """Every case of the protocol's evaluation block, by case id (an id names a slot, the same in
     every block; the case itself carries its block's record seed)."""
@@ -170,9 +204,10 @@ def compare(incumbent: tuple[str, str], challenger: tuple[str, str]) -> PairedRe
         raise SystemExit(f"{len(foreign)} outcome(s) are not cases of the block (e.g. {foreign[0]}); "
                          "point each version at its own results folder of this block")
     shared = [i for i in ids if i in mine and i in theirs]
-    return read_rule(SelfCheckResult([mine[i] for i in shared], int(blocks[0][0]), False, 0.0),
-                     SelfCheckResult([theirs[i] for i in shared], int(blocks[0][0]), False, 0.0), len(ids),
-                     runs=(len(mine), len(theirs)))
+    reading = read_rule(SelfCheckResult([mine[i] for i in shared], int(blocks[0][0]), False, 0.0),
+                        SelfCheckResult([theirs[i] for i in shared], int(blocks[0][0]), False, 0.0), len(ids),
+                        runs=(len(mine), len(theirs)))
+    return replace(reading, environments=(environments(Path(incumbent[1])), environments(Path(challenger[1]))))
 
 
 def main() -> None:

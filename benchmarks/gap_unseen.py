@@ -39,7 +39,7 @@ import yaml
 from ema_uq.gap.selfcheck import SelfCheckResult, self_check, unseen_cases
 from ema_uq.gap.variant_catalogue import UNSEEN_SETS
 from gap import (METHOD_VERSIONS, ROOT, check_sources, load_protocol, method_settings, outcome_hash, protocol_settings,
-                 side_by_side)
+                 record_environment, side_by_side)
 
 
 #: the variant set of a protocol that names none (the first protocol, written before there were two)
@@ -103,6 +103,9 @@ def main() -> None:
                              protocol.get("variant_set", DEFAULT_VARIANT_SET))
         if len(cases) != int(protocol["n_cases_per_seed"]):
             raise SystemExit(f"{len(cases)} cases built, the protocol states {protocol['n_cases_per_seed']}")
+        note = record_environment(results / current[:12] / f"seed{seed}")
+        if note:
+            print(note, flush=True)
         parts[seed] = self_check(cases=cases, seed=seed, settings=protocol_settings(method), jobs=args.jobs,
                                  cache=results / current[:12] / f"seed{seed}",
                                  progress=lambda line, s=seed: print(f"seed {s} {line}", flush=True))

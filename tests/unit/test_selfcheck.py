@@ -377,6 +377,10 @@ def test_protocol_blocks_run_resume_and_print_side_by_side(tmp_path, monkeypatch
     assert n_part == n_cases // 2 and len(calls) == n_cases                 # the part was not diagnosed again
     cached = list((out / "development").glob("*/seed11/*.json"))
     assert len(cached) == n_cases and cached[0].parent.parent.name == frozen["sources"]["sha256"][:12]
+    # each run recorded its libraries: the part's cases belong to the first, the rest to the second
+    by_run = bench.cases_by_environment(cached[0].parent)
+    assert [len(files) for _, files in by_run] == [n_part, n_cases - n_part]
+    assert all(libraries == bench.library_versions() for libraries, _ in by_run)
     bench.protocol_main(protocol, "evaluation", out_dir=out)
     text = capsys.readouterr().out
     assert "[[Blocks]] (seeds development: 11; evaluation: 5201)" in text
@@ -718,6 +722,44 @@ def test_the_paired_reading_needs_the_same_block_and_only_its_cases(monkeypatch,
                               1.0).to_json()))
     with pytest.raises(SystemExit, match="not cases of the block"):
         paired.compare((files["a"], tmp_path / "ra"), (files["b"], tmp_path / "rb"))
+
+
+def test_a_block_folder_says_which_library_versions_diagnosed_which_cases(monkeypatch, tmp_path):
+    bench = _bench()
+    folder = tmp_path / "seed9001"
+    folder.mkdir()
+    (folder / "a.json").write_text("{}")                        # stored before runs recorded anything
+    first = {"python": "3.11.7", "numpy": "2.4.6", "scipy": "1.17.1", "numba": "0.68.1"}
+    second = {**first, "numpy": "2.5.0"}
+    monkeypatch.setattr(bench, "library_versions", lambda: first)
+    assert bench.record_environment(folder) is None
+    for name in ("b.json", "c.json"):
+        (folder / name).write_text("{}")
+    assert bench.record_environment(folder) is None             # the same libraries: nothing to say
+    (folder / "d.json").write_text("{}")
+    monkeypatch.setattr(bench, "library_versions", lambda: second)
+    note = bench.record_environment(folder)
+    assert "2.4.6" in note and "2.5.0" in note
+    (folder / "e.json").write_text("{}")
+    assert bench.cases_by_environment(folder) == [(None, ["a.json"]), (first, ["b.json", "c.json"]),
+                                                  (first, ["d.json"]), (second, ["e.json"])]
+    # the paired reading adds them up per version and says when the block spans environments
+    paired = _paired_script(monkeypatch)
+    results = tmp_path / "results"
+    (results / "evaluation" / "abc").mkdir(parents=True)
+    shutil.copytree(folder, results / "evaluation" / "abc" / "seed9001")
+    counts = paired.environments(results)
+    assert counts == [(None, 1), (first, 3), (second, 1)]
+    reading = dataclasses.replace(paired.read_rule(_block(), _block(), n_block=176), environments=(counts, counts))
+    assert "incumbent: 3 cases, python 3.11.7, numpy 2.4.6" in reading.summary()
+    assert "spans 2 library environments" in reading.summary()
+    one = dataclasses.replace(reading, environments=([(first, 8)], [(None, 2), (first, 6)]))
+    assert "spans" not in one.summary() and "2 cases, stored before runs recorded" in one.summary()
+    # a line that is not a record stops the reading, naming it
+    with open(folder / bench.ENVIRONMENTS, "a") as fh:
+        fh.write("not json\n")
+    with pytest.raises(SystemExit, match="line 4: not an environment record"):
+        bench.cases_by_environment(folder)
 
 
 @pytest.mark.parametrize("version", [4, 7])
