@@ -425,7 +425,7 @@ def _stored_cases(folder: Path) -> list[str]:
     return sorted(p.name for p in Path(folder).glob("*.json"))
 
 
-def record_environment(folder: Path, *, started: str | None = None) -> str | None:
+def record_environment(folder: Path) -> str | None:
     """Append this run's line to ``folder/environments.jsonl`` (the folder of one seed's outcomes)
     and return a note when its library versions differ from an earlier run's. A block that spans
     sessions or machines then says which cases each environment diagnosed
@@ -435,7 +435,7 @@ def record_environment(folder: Path, *, started: str | None = None) -> str | Non
     folder.mkdir(parents=True, exist_ok=True)
     current = library_versions()
     earlier = [r["libraries"] for r in _environment_records(folder)]
-    line = {"started": started or datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+    line = {"started": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             "libraries": current, "stored": _stored_cases(folder)}
     with open(folder / ENVIRONMENTS, "a", encoding="utf-8") as fh:
         fh.write(json.dumps(line) + "\n")
@@ -443,7 +443,7 @@ def record_environment(folder: Path, *, started: str | None = None) -> str | Non
     if not others:
         return None
     return (f"note: {folder} holds cases diagnosed with {others[-1]}, this run uses {current}; "
-            "the block's outcomes will say which cases each diagnosed (benchmarks/gap_paired.py)")
+            "the folder's environments.jsonl tells which cases each diagnosed (benchmarks/gap_paired.py prints it)")
 
 
 def _environment_records(folder: Path) -> list[dict]:
