@@ -76,7 +76,8 @@ from ema_uq.gap import attribute, predictable, structure, verdict
 from ema_uq.gap.selfcheck import (CALIBRATION_SEEDS, CaseOutcome, run_case, DEFAULT_SEED, KINDS, NONE_PER_SET, SENSOR_SETS, TARGET_FALSE_ALARM,
                                   TARGET_NAMES, TARGET_TOP1, TARGETS, SelfCheckResult, catalogue_families, family_of,
                                   self_check)
-from ema_uq.gap.strategy import DiagnosisSettings, Thresholds, strategy_for
+from ema_uq.gap.strategy import (DEFAULT_METHOD_VERSION, METHOD_VERSIONS, DiagnosisSettings, Thresholds,
+                                  method_switches, strategy_for)
 from ema_uq.gap.variants import record_channels, validation_scaled
 from ema_uq.models import get_model
 from ema_uq.simulate import simulate_batch
@@ -530,35 +531,12 @@ def protocol_settings(protocol: dict) -> DiagnosisSettings:
     return DiagnosisSettings(**frozen)
 
 
-#: what each method version changed (docs/gap-diagnosis.md); 3 was tried and not adopted
-METHOD_VERSIONS = {1: "the nominal model's kinematics and command taken as exact",
-                   2: "the model-form allowance (kinematic tolerance, command lag) fitted in every model",
-                   3: "2 at the model contract's converged step where no effect brings faster dynamics "
-                      "(tried, not adopted)",
-                   4: "2 with the spanning forms: friction per direction, a sensor delay with its filter",
-                   5: "4 with the operating-point forms (a ripple share with the motor torque, a joint angle along "
-                      "the stroke, a stiffness with the torque carried), the nesting forms only, at the model "
-                      "contract's converged step where no effect brings faster dynamics",
-                   6: "5 with fits at the precision the verdict reads: each stops once the decrease of 2V still to "
-                      "come is below 0.1 (a hundredth of the evidence margin), no identifiable combinations of "
-                      "held parameters",
-                   7: "6 with the decrease still to come judged by what the next full Gauss-Newton step promises "
-                      "at the current iterate, not extrapolated from past decreases (version 6 stopped a nominal "
-                      "fit on a plateau, 1798 in 2V short of its optimum)"}
-
-
-#: the version ``DiagnosisSettings()`` gives: 4 since its evaluation block 5205 met its rule (version 2 before)
-DEFAULT_METHOD_VERSION = 4
-
-
 def method_settings(version: int) -> DiagnosisSettings:
     """The diagnosis settings of method ``version`` (:data:`METHOD_VERSIONS`)."""
-    if version not in METHOD_VERSIONS:
-        raise SystemExit(f"no method version {version}; choose from {', '.join(map(str, METHOD_VERSIONS))}")
-    return DiagnosisSettings(model_form_allowance=version >= 2, converged_step=version in (3, 5, 6, 7),
-                             spanning_forms=version >= 4, operating_point_forms=version >= 5,
-                             nested_forms=version < 5, decision_fits=version >= 6,
-                             decision_stop="predicted" if version >= 7 else "extrapolated")
+    try:
+        return DiagnosisSettings(**method_switches(version))
+    except ValueError as exc:
+        raise SystemExit(str(exc)) from None
 
 
 def run_block(protocol: dict, block: str, out_dir: Path, jobs: int = 1, chunk: str | None = None,

@@ -77,6 +77,7 @@ def _check_semantics(study: dict, source: str) -> None:
 def _check_gap_section(study: dict, model, source: str) -> None:
     """Hidden rig effects and diagnosis candidates must be effects of the concept."""
     from .models.effects import parse_effect
+    from .rigs import is_measured
 
     gap = section(study, "gap")
     available = model.available_effects
@@ -90,6 +91,10 @@ def _check_gap_section(study: dict, model, source: str) -> None:
         if name not in available:
             raise StudyError(f"{source}: key 'gap.candidates': effect {name!r} is not available for {model.name}; "
                              f"available: {', '.join(available)}")
+    if gap["method_version"] is not None and is_measured(model.name):
+        raise StudyError(f"{source}: key 'gap.method_version': the method versions are those of the synthetic "
+                         f"concepts' diagnosis, and {model.name} is a measured rig with a strategy of its own; "
+                         "drop the key")
 
 
 def section(study: dict[str, Any], name: str) -> dict[str, Any]:
@@ -237,12 +242,14 @@ def settings_for(study: dict[str, Any], verb: str, *, role: str | None = None) -
                                          "collinearity_threshold")},
                 "noise": data["noise"], "set": overrides}
     if verb == "gap":
-        return {"candidates": section(study, "gap")["candidates"], "channels": data.get("channels"),
-                "set": overrides}
+        gap = section(study, "gap")
+        return {"candidates": gap["candidates"], "channels": data.get("channels"), "set": overrides,
+                "method_version": gap["method_version"]}
     if verb == "gap-selfcheck":
         gap = section(study, "gap")
         return {"seed": seed, "quick": gap["selfcheck"] == "quick", "concepts": [study["concept"]],
-                "none_per_set": gap["selfcheck_none_per_set"], "sensors": list(gap["selfcheck_sensors"])}
+                "none_per_set": gap["selfcheck_none_per_set"], "sensors": list(gap["selfcheck_sensors"]),
+                "method_version": gap["method_version"]}
     raise StudyError(f"verb {verb!r} takes no settings from a study; these do: {', '.join(STUDY_VERBS)}")
 
 

@@ -35,10 +35,33 @@ def add_gap(subparsers) -> None:
                    help="candidate effects (default: the concept's whole catalogue)")
     p.add_argument("--channels", nargs="+", metavar="NAME", help="use only these channels (default: all common)")
     p.add_argument("--figure", metavar="LEDGER.png", help="also write the gap ledger figure")
+    add_method_version(p)
     add_seed(p)
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     p.add_argument("--out", required=True, metavar="GAP.json")
     p.set_defaults(handler=_run_gap)
+
+
+def add_method_version(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--method-version", type=int, default=None, metavar="N",
+                        help="gap method version (docs/gap-diagnosis.md: what each changed; default: the "
+                             "package's default version); HT/LS and LT/HS only")
+
+
+def _method_switches(version: int | None, concept: str) -> dict:
+    """The settings switches of ``--method-version`` (none without it), refused for a measured rig."""
+    from ..gap.strategy import method_switches
+    from ..rigs import is_measured
+
+    if version is None:
+        return {}
+    if is_measured(concept):
+        raise CLIError(f"--method-version {version}: the method versions are those of the synthetic concepts' "
+                       f"diagnosis, and {concept} is a measured rig with a strategy of its own; drop the option")
+    try:
+        return method_switches(version)
+    except ValueError as exc:
+        raise CLIError(f"--method-version {version}: {exc}") from None
 
 
 def _run_gap(args: argparse.Namespace) -> str:
@@ -46,7 +69,9 @@ def _run_gap(args: argparse.Namespace) -> str:
 
     from .. import io
     from ..gap import diagnose, strategy_for
+    from ..gap.strategy import method_version_of
     from ..models import get_model
+    from ..rigs import is_measured
 
     if not 0 < args.holdout < 1:
         raise CLIError(f"--holdout {args.holdout:g}: give a fraction between 0 and 1 (e.g. 0.3)")
@@ -72,11 +97,15 @@ def _run_gap(args: argparse.Namespace) -> str:
                            "(study key data.set)")
         _, constants = model_vectors(model, args.set)
         strategy = replace(strategy, constants=lambda _record: constants)
+    settings = replace(strategy.settings, holdout_fraction=args.holdout,
+                       **_method_switches(args.method_version, model.name))
     result = diagnose(measurements, validation_data, candidates=split_names(args.candidates), strategy=strategy,
-                      settings=replace(strategy.settings, holdout_fraction=args.holdout), seed=args.seed,
+                      settings=settings, seed=args.seed,
                       progress=None if args.quiet else progress)
     result.provenance = run_provenance(args, args.data + args.validate, seed=args.seed)
-    io.write_json(args.out, result.to_json())
+    # which method decided, in the file itself (a measured rig's strategy has no version)
+    io.write_json(args.out, {**result.to_json(),
+                             "method_version": None if is_measured(model.name) else method_version_of(settings)})
     tail = ""
     if args.figure:  # the rig's own figure where it has one (its study computes the arrays), else the ledger
         from ..report.gap_figures import gap_figure
@@ -131,6 +160,7 @@ def add_gap_selfcheck(subparsers) -> None:
                    help="join the parts of a --chunk run (0/N..N-1/N) into the result of one run; runs no case")
     p.add_argument("--cache", default=None, metavar="DIR",
                    help="keep each case's outcome in DIR and read it back on a rerun (resume)")
+    add_method_version(p)
     add_seed(p, default=2024)
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     p.add_argument("--out", required=True, metavar="SELFCHECK.json")
@@ -140,7 +170,10 @@ def add_gap_selfcheck(subparsers) -> None:
 def _run_gap_selfcheck(args: argparse.Namespace) -> str:
     from .. import io
     from ..gap.selfcheck import SelfCheckError, gather, parse_chunk, self_check
+    from ..gap.strategy import DiagnosisSettings
 
+    # the self-check's concepts are synthetic ones (its independent simulator has no rig)
+    switches = _method_switches(args.method_version, "htls")
     if args.jobs < 1:
         raise CLIError(f"--jobs {args.jobs}: give at least 1 worker process")
     io.prepare_output(args.out)
@@ -159,7 +192,7 @@ def _run_gap_selfcheck(args: argparse.Namespace) -> str:
         result = self_check(seed=args.seed, quick=args.quick, concepts=split_names(args.concepts), sensors=split_names(args.sensors),
                             none_per_set=args.none_per_set, kinds=split_names(args.kinds), jobs=args.jobs,
                             progress=None if args.quiet else progress, chunk=parse_chunk(args.chunk),
-                            cache=args.cache)
+                            cache=args.cache, settings=DiagnosisSettings(**switches) if switches else None)
     except SelfCheckError as exc:
         raise CLIError(str(exc)) from None
     # how the cases are scattered and where they are cached cannot change a score

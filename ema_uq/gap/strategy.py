@@ -106,6 +106,47 @@ class DiagnosisSettings:
                              "'predicted' (method version 7)")
 
 
+#: the method versions of the synthetic concepts' diagnosis (docs/gap-diagnosis.md): what each
+#: changed; each is a set of :class:`DiagnosisSettings` switches (:func:`method_switches`), and a
+#: version is frozen with its evaluation block in a protocol file under ``benchmarks/``
+METHOD_VERSIONS = {1: "the nominal model's kinematics and command taken as exact",
+                   2: "the model-form allowance (kinematic tolerance, command lag) fitted in every model",
+                   3: "2 at the model contract's converged step where no effect brings faster dynamics "
+                      "(tried, not adopted)",
+                   4: "2 with the spanning forms: friction per direction, a sensor delay with its filter",
+                   5: "4 with the operating-point forms (a ripple share with the motor torque, a joint angle along "
+                      "the stroke, a stiffness with the torque carried), the nesting forms only, at the model "
+                      "contract's converged step where no effect brings faster dynamics",
+                   6: "5 with fits at the precision the verdict reads: each stops once the decrease of 2V still to "
+                      "come is below 0.1 (a hundredth of the evidence margin), no identifiable combinations of "
+                      "held parameters",
+                   7: "6 with the decrease still to come judged by what the next full Gauss-Newton step promises "
+                      "at the current iterate, not extrapolated from past decreases (version 6 stopped a nominal "
+                      "fit on a plateau, 1798 in 2V short of its optimum)"}
+
+#: the version ``DiagnosisSettings()`` gives: 4 since its evaluation block 5205 met its rule (version 2 before)
+DEFAULT_METHOD_VERSION = 4
+
+
+def method_switches(version: int) -> dict[str, Any]:
+    """The :class:`DiagnosisSettings` switches of method ``version`` (:data:`METHOD_VERSIONS`), to
+    lay over a strategy's settings with :func:`dataclasses.replace`; the other settings (iteration
+    caps, hold-out fraction) are the same in every version."""
+    if version not in METHOD_VERSIONS:
+        raise ValueError(f"no gap method version {version}; choose from {', '.join(map(str, METHOD_VERSIONS))}")
+    return {"model_form_allowance": version >= 2, "converged_step": version in (3, 5, 6, 7),
+            "spanning_forms": version >= 4, "operating_point_forms": version >= 5, "nested_forms": version < 5,
+            "decision_fits": version >= 6, "decision_stop": "predicted" if version >= 7 else "extrapolated"}
+
+
+def method_version_of(settings: DiagnosisSettings) -> int | None:
+    """The method version whose switches ``settings`` carry, None for a combination no version has."""
+    for version in METHOD_VERSIONS:
+        if all(getattr(settings, key) == value for key, value in method_switches(version).items()):
+            return version
+    return None
+
+
 class GapMetric(Protocol):
     """The held-out gap of a fitted model. ``figures`` returns at least ``gap`` (the metric),
     ``z`` (its significance in noise σ, NaN when the metric has none), ``factors`` (common

@@ -299,7 +299,7 @@ def test_a_method_version_is_frozen_with_its_own_settings_and_catalogue(tmp_path
     assert "method_version" not in default and bench.protocol_settings(default) == DiagnosisSettings()
     assert bench.method_settings(7).decision_stop == "predicted"
     assert bench.method_settings(6).decision_stop == "extrapolated"
-    with pytest.raises(SystemExit, match="no method version 8"):
+    with pytest.raises(SystemExit, match="no gap method version 8"):
         bench.method_settings(8)
 
 
