@@ -19,3 +19,17 @@ def compiled_simulator():
     model = eu.get_model("htls")
     experiment = eu.deploy_retract()
     eu.simulate_batch(model, model.parameters.nominal, experiment.time, experiment.input_matrix(model))
+
+
+@pytest.fixture(scope="session")
+def short_htls_record(tmp_path_factory):
+    """A short HT/LS record as a CSV file (the first 2 s of deploy-retract, every channel, no noise)."""
+    from ema_uq import get_model, io, simulate_batch
+    from ema_uq.experiments import Measurement, deploy_retract
+
+    model = get_model("htls")
+    exp = deploy_retract().slice(0, 200)
+    values = simulate_batch(model, model.parameters.nominal, exp.time, exp.input_matrix(model))
+    path = tmp_path_factory.mktemp("records") / "est.csv"
+    io.write_measurement(path, Measurement("htls", exp, model.outputs, values))
+    return path

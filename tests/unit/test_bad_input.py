@@ -5,21 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ema_uq import cli, io
-from ema_uq.experiments import MAX_MAGNITUDE, Experiment, ExperimentError, Measurement, deploy_retract
+from ema_uq import cli
+from ema_uq.experiments import MAX_MAGNITUDE, Experiment, ExperimentError
 
 
 @pytest.fixture(scope="module")
-def record(tmp_path_factory):
+def record(short_htls_record):
     """A short HT/LS record (the first 2 s of deploy-retract, every channel)."""
-    from ema_uq import get_model, simulate_batch
-
-    model = get_model("htls")
-    exp = deploy_retract().slice(0, 200)
-    values = simulate_batch(model, model.parameters.nominal, exp.time, exp.input_matrix(model))
-    path = tmp_path_factory.mktemp("records") / "est.csv"
-    io.write_measurement(path, Measurement("htls", exp, model.outputs, values))
-    return path
+    return short_htls_record
 
 
 def _error(capsys, args) -> str:

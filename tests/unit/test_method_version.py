@@ -8,7 +8,6 @@ import pytest
 import yaml
 
 from ema_uq import cli, io
-from ema_uq.experiments import Measurement, deploy_retract
 from ema_uq.gap.strategy import (DEFAULT_METHOD_VERSION, METHOD_VERSIONS, DiagnosisSettings, method_switches,
                                  method_version_of)
 from ema_uq.study import StudyError, load_study, settings_for
@@ -39,18 +38,6 @@ def test_a_study_names_the_version_for_both_gap_verbs_and_not_for_a_measured_rig
         load_study(_study(tmp_path, "cranfield", method_version=7))
 
 
-@pytest.fixture(scope="module")
-def record(tmp_path_factory):
-    from ema_uq import get_model, simulate_batch
-
-    model = get_model("htls")
-    exp = deploy_retract().slice(0, 200)
-    values = simulate_batch(model, model.parameters.nominal, exp.time, exp.input_matrix(model))
-    path = tmp_path_factory.mktemp("records") / "est.csv"
-    io.write_measurement(path, Measurement("htls", exp, model.outputs, values))
-    return path
-
-
 class _Diagnosed:
     """What the gap verb reads of a diagnosis result, without diagnosing."""
     concept, wall_time_s, provenance = "htls", 0.0, None
@@ -63,7 +50,7 @@ class _Diagnosed:
         return "none"
 
 
-def test_the_gap_verb_diagnoses_with_the_version_asked_for_and_says_which(record, tmp_path, monkeypatch, capsys):
+def test_the_gap_verb_diagnoses_with_the_version_asked_for_and_says_which(short_htls_record, tmp_path, monkeypatch, capsys):
     import ema_uq.gap as gap
 
     seen = []
@@ -74,6 +61,7 @@ def test_the_gap_verb_diagnoses_with_the_version_asked_for_and_says_which(record
 
     monkeypatch.setattr(gap, "diagnose", fake_diagnose)
     written = []
+    record = short_htls_record
     for extra in ([], ["--method-version", "7"], ["--study", _study(tmp_path, "htls", method_version=2)]):
         assert cli.main(["gap", str(record), "--concept", "htls", "--out", str(tmp_path / "g.json"), *extra]) == 0
         written.append(io.read_json(tmp_path / "g.json")["method_version"])
