@@ -48,14 +48,15 @@ def add_method_version(parser: argparse.ArgumentParser) -> None:
                              "package's default version); HT/LS and LT/HS only")
 
 
-def _method_switches(version: int | None, concept: str) -> dict:
-    """The settings switches of ``--method-version`` (none without it), refused for a measured rig."""
+def _method_switches(version: int | None, concept: str | None = None) -> dict:
+    """The settings switches of ``--method-version`` (none without it), refused for a measured rig
+    (``concept`` None: records of the synthetic concepts, as the self-check's)."""
     from ..gap.strategy import method_switches
     from ..rigs import is_measured
 
     if version is None:
         return {}
-    if is_measured(concept):
+    if concept is not None and is_measured(concept):
         raise CLIError(f"--method-version {version}: the method versions are those of the synthetic concepts' "
                        f"diagnosis, and {concept} is a measured rig with a strategy of its own; drop the option")
     try:
@@ -172,8 +173,7 @@ def _run_gap_selfcheck(args: argparse.Namespace) -> str:
     from ..gap.selfcheck import SelfCheckError, gather, parse_chunk, self_check
     from ..gap.strategy import DiagnosisSettings
 
-    # the self-check's concepts are synthetic ones (its independent simulator has no rig)
-    switches = _method_switches(args.method_version, "htls")
+    switches = _method_switches(args.method_version)
     if args.jobs < 1:
         raise CLIError(f"--jobs {args.jobs}: give at least 1 worker process")
     io.prepare_output(args.out)
