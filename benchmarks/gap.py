@@ -469,12 +469,12 @@ def cases_by_environment(folder: Path) -> list[tuple[dict | None, list[str]]]:
     did not find it stored. Two runs of one folder at the same time (scattered chunks) cannot be
     told apart this way: their cases go to the later one."""
     records = _environment_records(folder)
-    final = _stored_cases(folder)
-    seen = set(records[0]["stored"]) if records else set(final)
-    groups = [(None, sorted(seen & set(final)))]
+    final = set(_stored_cases(folder))
+    seen = set(records[0]["stored"]) if records else final
+    groups = [(None, sorted(seen & final))]
     for i, record in enumerate(records):
-        after = set(records[i + 1]["stored"]) if i + 1 < len(records) else set(final)
-        new = sorted((after & set(final)) - seen)
+        after = set(records[i + 1]["stored"]) if i + 1 < len(records) else final
+        new = sorted((after & final) - seen)
         groups.append((record["libraries"], new))
         seen |= set(new)
     return [(libs, files) for libs, files in groups if files]

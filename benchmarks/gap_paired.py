@@ -157,17 +157,13 @@ def _outcomes(results: Path) -> dict[str, CaseOutcome]:
 
 
 def environments(results: Path) -> list[tuple[dict | None, int]]:
-    """(library versions, number of cases) over the seed folders of one results folder's block."""
-    counts: list[tuple[dict | None, int]] = []
+    """(library versions, number of cases) over the seed folders of one results folder's block,
+    in the order each environment first appears."""
+    counts: dict[str, list] = {}
     for folder in sorted((Path(results) / "evaluation").glob("*/seed*")):
         for libraries, files in cases_by_environment(folder):
-            for i, (known, n) in enumerate(counts):
-                if known == libraries:
-                    counts[i] = (known, n + len(files))
-                    break
-            else:
-                counts.append((libraries, len(files)))
-    return counts
+            counts.setdefault(json.dumps(libraries, sort_keys=True), [libraries, 0])[1] += len(files)
+    return [(libraries, n) for libraries, n in counts.values()]
 
 
 def block_cases(protocol: dict) -> dict[str, Case]:
