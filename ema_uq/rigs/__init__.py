@@ -20,6 +20,14 @@ import numpy as np
 #: concepts with measured records, each the module ``rigs/<concept>.py``
 RIGS = ("emps", "cranfield")
 
+#: the diagnosis switches (:class:`ema_uq.gap.strategy.DiagnosisSettings`) of the measured rigs'
+#: strategies: those of the synthetic concepts' default when the rigs' verdicts were last checked
+#: against their SOURCE notes (method version 4), written out so that a new default, decided on
+#: simulated records alone, cannot move a verdict on measured data unseen
+MEASURED_RIG_SWITCHES = {"model_form_allowance": True, "converged_step": False, "spanning_forms": True,
+                         "operating_point_forms": False, "nested_forms": True, "decision_fits": False,
+                         "decision_stop": "extrapolated"}
+
 
 @dataclass(frozen=True)
 class Rig:

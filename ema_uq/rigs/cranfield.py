@@ -64,6 +64,7 @@ from ..gap.strategy import DiagnosisSettings, DiagnosisStrategy, Thresholds
 from ..identify import FitProblem, FitResult, Settings, estimate
 from ..models import get_model
 from ..simulate import simulate_batch
+from . import MEASURED_RIG_SWITCHES
 from .cranfield_cycles import cycle_replicate_prediction
 from .cranfield_cycles import set_point_period  # noqa: F401 - still importable from here
 
@@ -279,7 +280,8 @@ def cranfield_strategy(reference_fit: Mapping[str, float] | None = None, metric:
 
     strategy = DiagnosisStrategy(
         name="cranfield", channels=CHANNELS,
-        settings=DiagnosisSettings(candidate_max_iterations=30, screen_base_parameters=None, final_max_iterations=30),
+        settings=DiagnosisSettings(**MEASURED_RIG_SWITCHES, candidate_max_iterations=30, screen_base_parameters=None,
+                                   final_max_iterations=30),
         start_multiples=(0.3, 1.0, 3.0, 10.0), metric=metric or SystematicNrmse(), localize=residual_by_regime,
         where_source="held-out", thresholds=THRESHOLDS,
         replicate_prediction=cycle_replicate_prediction if replicates else None)

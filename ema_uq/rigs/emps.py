@@ -42,6 +42,7 @@ from ..models import Model, get_model
 from ..models import emps
 from ..simulate import simulate_batch
 from ..statistics import speed_regimes
+from . import MEASURED_RIG_SWITCHES
 from . import Rig
 
 #: Published asymmetric-friction IDIM-LS variant (``Script_IDIM_LS_Asym_Fric.m``, no offset).
@@ -416,7 +417,7 @@ def gap_figure_data(result, held_out: Sequence[Measurement]) -> dict[str, Any]:
 #: lowers BIC by more than 10 and shrinks that error by at least 5 %; candidates rank by ΔBIC.
 EMPS_STRATEGY = DiagnosisStrategy(
     name="emps", channels=DEFAULT_CHANNELS, constants=emps.constants_for,
-    settings=DiagnosisSettings(nominal_max_iterations=Settings().max_iterations,
+    settings=DiagnosisSettings(**MEASURED_RIG_SWITCHES, nominal_max_iterations=Settings().max_iterations,
                                candidate_max_iterations=Settings().max_iterations, screen_base_parameters=None,
                                max_effects=2),
     start_multiples=(0.3, 1.0, 3.0), metric=ForceError(), localize=force_residual_by_regime,

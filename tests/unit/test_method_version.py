@@ -107,3 +107,25 @@ def test_a_measured_rig_refuses_a_method_version():
     assert _method_switches(None, "emps") == {}
     with pytest.raises(CLIError, match="emps is a measured rig"):
         _method_switches(7, "emps")
+
+
+def test_the_measured_rigs_keep_their_switches_when_the_synthetic_default_changes():
+    """A new default is decided on simulated records; it must not reach EMPS or Cranfield unseen.
+    The rigs are imported in a fresh interpreter whose default settings are another version's."""
+    import subprocess
+    import sys
+
+    from ema_uq import rigs
+
+    assert rigs.MEASURED_RIG_SWITCHES == method_switches(4)
+    other = next(v for v in METHOD_VERSIONS if method_switches(v) != rigs.MEASURED_RIG_SWITCHES)
+    script = (
+        "import functools\n"
+        "from ema_uq.gap import strategy\n"
+        "strategy.DiagnosisSettings = functools.partial(strategy.DiagnosisSettings,"
+        f" **strategy.method_switches({other}))\n"
+        "from ema_uq.rigs import cranfield, emps\n"
+        "print(strategy.method_version_of(emps.EMPS_STRATEGY.settings),"
+        " strategy.method_version_of(cranfield.cranfield_strategy().settings))\n")
+    shown = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True).stdout
+    assert shown.split() == ["4", "4"]
