@@ -15,7 +15,7 @@ from ema_uq.experiments import Measurement, add_noise
 from ema_uq.gap import DiagnosisSettings, diagnose
 from ema_uq.gap.allowance import (LAG_NAME, AllowanceError, AllowedModel, ModelFormAllowance, actuator_allowance,
                                   command_lag, kinematic_constants, position_loop_time_constant)
-from ema_uq.gap.strategy import DEFAULT_STRATEGY
+from ema_uq.gap.strategy import DEFAULT_STRATEGY, method_switches
 from ema_uq.gap.variants import simulate_variant
 from ema_uq.identify import FitProblem, Settings, estimate
 
@@ -124,7 +124,7 @@ V1_NONE = {"log_det_R": -57.633276480450995, "before": 0.0, "after": 0.0,
 def test_allowance_off_reproduces_method_version_1():
     est = synthesize("htls", deploy_retract(), noise=0.02, seed=41)
     r = diagnose([est], candidates=("load_dependent_friction", "sensor_delay"), seed=41,
-                 settings=replace(DEFAULT_STRATEGY.settings, model_form_allowance=False, converged_step=False))
+                 settings=replace(DEFAULT_STRATEGY.settings, **method_switches(1)))
     assert "model_form_allowance" not in r.to_json()
     got = {"log_det_R": r.nominal["log_det_R"], "before": r.gap["before"], "after": r.gap["after"],
            **{c.effect: c.delta_bic for c in r.ranking}}
@@ -144,11 +144,11 @@ def test_a_version_1_protocol_runs_without_the_allowance(tmp_path):
     assert bench.protocol_settings(committed).model_form_allowance is committed["settings"]["model_form_allowance"]
     # a protocol frozen before the allowance existed has no such setting: it runs as it was frozen
     v1 = {**committed, "settings": {k: v for k, v in committed["settings"].items() if k != "model_form_allowance"}}
-    assert bench.protocol_settings(v1) == DiagnosisSettings(model_form_allowance=False, converged_step=False,
-                                                          spanning_forms=False)
+    assert bench.protocol_settings(v1) == DiagnosisSettings(**method_switches(1))
     # a protocol frozen now records the setting, and runs with it
     frozen = bench.freeze(tmp_path / "protocol.yaml", development=[11], evaluation=[5201])
-    assert frozen["settings"]["model_form_allowance"] is True and frozen["settings"]["converged_step"] is False
+    assert frozen["settings"]["model_form_allowance"] is True
+    assert frozen["settings"]["converged_step"] is DiagnosisSettings().converged_step
     assert bench.protocol_settings(frozen) == DiagnosisSettings()
 
 
@@ -158,7 +158,8 @@ def test_an_unrecorded_command_filter_is_no_sensor_delay_with_the_allowance():
     est, val, val2, _ = make_records("htls", None, None, seed=7, channels="realistic", base_perturbation=0.10,
                                      stress={"input_filter": 0.035})
     runs = {on: diagnose([est], [val, val2], candidates=("sensor_delay", "load_dependent_friction"), seed=7,
-                         settings=replace(DEFAULT_STRATEGY.settings, model_form_allowance=on))
+                         settings=replace(DEFAULT_STRATEGY.settings,
+                                          **{**method_switches(4), "model_form_allowance": on}))
             for on in (False, True)}
     assert runs[False].verdict == "effect" and runs[False].effect == "sensor_delay"      # version 1's false alarm
     assert runs[True].verdict in ("none", "unexplained") and runs[True].effect is None

@@ -9,7 +9,7 @@ import pytest
 
 from ema_uq.experiments import deploy_retract, synthesize
 from ema_uq.gap import candidates, fitting
-from ema_uq.gap.strategy import DECISION_TOLERANCE, DiagnosisSettings
+from ema_uq.gap.strategy import DECISION_TOLERANCE, DiagnosisSettings, method_switches
 from ema_uq.identify import FitProblem, IdentificationError, Settings, estimate, perturbed_start
 from ema_uq.identify import estimators
 from ema_uq.models import get_model
@@ -104,7 +104,7 @@ def test_decision_fits_switch_the_diagnosis_fits_to_both_rules():
     lean = candidates._fit_settings(DiagnosisSettings(decision_fits=True), 8)
     assert lean.decrease_tolerance == DECISION_TOLERANCE and lean.combinations is False
     assert lean.max_iterations == 8
-    plain = candidates._fit_settings(DiagnosisSettings(), 30)
+    plain = candidates._fit_settings(DiagnosisSettings(decision_fits=False), 30)
     assert plain.decrease_tolerance is None and plain.combinations is True
     assert plain.tolerance == DiagnosisSettings().tolerance == Settings().tolerance
 
@@ -144,4 +144,4 @@ def test_a_decrease_estimate_and_a_decision_stop_must_be_known():
         DiagnosisSettings(decision_stop="guessed")
     lean = candidates._fit_settings(DiagnosisSettings(decision_fits=True, decision_stop="predicted"), 8)
     assert lean.decrease_estimate == "predicted" and lean.decrease_tolerance == DECISION_TOLERANCE
-    assert candidates._fit_settings(DiagnosisSettings(decision_fits=True), 8).decrease_estimate == "extrapolated"
+    assert candidates._fit_settings(DiagnosisSettings(**method_switches(6)), 8).decrease_estimate == "extrapolated"

@@ -6,7 +6,8 @@ import pytest
 
 from ema_uq.gap.localize import ResidualRecord
 from ema_uq.gap.result import CandidateScore
-from ema_uq.gap.strategy import Thresholds
+from ema_uq.gap.strategy import (DEFAULT_METHOD_VERSION, METHOD_VERSIONS, DiagnosisSettings, Thresholds,
+                                 method_switches)
 from ema_uq.gap.structure import (CellEnergy, StructureSettings, cell_energies, cell_masks, stroke_bins,
                                   structure_left, where_along_stroke, where_left)
 from ema_uq.gap.verdict import (MARGIN_EVIDENCE, effective_sample_fraction, family_probabilities, verdict,
@@ -226,7 +227,10 @@ def test_a_compound_of_two_mechanisms_is_no_candidate():
 
     model = get_model("htls")
     assert model.effect_catalogue["backlash_compliant"].combines == ("shaft_compliance",)
-    assert "backlash_compliant" not in _catalogue(model) and "shaft_compliance" in _catalogue(model)
+    for version in METHOD_VERSIONS:                       # the compound in no version, its parts in each
+        settings = DiagnosisSettings(**method_switches(version))
+        assert "backlash_compliant" not in _catalogue(model, settings)
+        assert catalogue_families("htls", settings)["shaft_compliance"]
     assert "backlash_compliant" not in catalogue_families("htls")["backlash"]
     with pytest.raises(GapError, match="carry another family's mechanism"):
         _refuse_compound()
@@ -244,18 +248,18 @@ def _refuse_compound():
 def test_the_spanning_forms_are_offered_from_method_version_4_on_the_default():
     from ema_uq import synthesize
     from ema_uq.experiments import deploy_retract
-    from ema_uq.gap import DiagnosisSettings, GapError, diagnose
+    from ema_uq.gap import GapError, diagnose
     from ema_uq.gap.attribute import _catalogue
     from ema_uq.gap.candidates import SPANNING_FORMS
     from ema_uq.gap.selfcheck import build_cases, catalogue_families, under_catalogue
 
     model = get_model("lths")
-    version2 = DiagnosisSettings(spanning_forms=False)
+    version2, version4 = DiagnosisSettings(**method_switches(2)), DiagnosisSettings(**method_switches(4))
     assert not set(SPANNING_FORMS) & set(_catalogue(model, version2))
-    assert set(SPANNING_FORMS) <= set(_catalogue(model, DiagnosisSettings(spanning_forms=True)))
-    # version 4 is the default (it passed its evaluation): the defaults offer the spanning forms
+    assert set(SPANNING_FORMS) <= set(_catalogue(model, version4))
+    # every version since 4 offers them, the default among them
     assert DiagnosisSettings().spanning_forms and set(SPANNING_FORMS) <= set(_catalogue(model))
-    families = catalogue_families("lths", DiagnosisSettings(spanning_forms=True))
+    families = catalogue_families("lths", version4)
     assert families["stribeck"] == ["stribeck", "stribeck_directional"]
     assert families["sensor_delay"] == ["sensor_delay", "sensor_delay_dispersed"]
     # the cases are defined on version 2's catalogue, whatever the default
@@ -264,9 +268,10 @@ def test_the_spanning_forms_are_offered_from_method_version_4_on_the_default():
     case = next(c for c in build_cases(["lths"], seed=11, sensors=["full"], kinds=("left_out",))
                 if c.family == "stribeck")
     assert under_catalogue(case, version2) is case
-    wider = under_catalogue(case, DiagnosisSettings(spanning_forms=True))
+    wider = under_catalogue(case, version4)
     assert set(wider.candidates) - set(case.candidates) == {"load_friction_directional", "sensor_delay_dispersed"}
-    assert under_catalogue(case, None) == wider               # None: the defaults the diagnosis runs with
+    default = DiagnosisSettings(**method_switches(DEFAULT_METHOD_VERSION))
+    assert under_catalogue(case, None) == under_catalogue(case, default)   # None: the defaults the diagnosis runs with
     data = synthesize("lths", deploy_retract().slice(0, 200), noise=0.02, seed=1)
     with pytest.raises(GapError, match="method version 4 on; set DiagnosisSettings"):
         diagnose([data], candidates=["stribeck_directional"], settings=version2)
@@ -277,13 +282,13 @@ def test_version_5_offers_each_family_by_the_forms_that_nest_the_others():
     nesting form fits everything the nested one does, so offering both costs a refit for nothing)."""
     from ema_uq import synthesize
     from ema_uq.experiments import deploy_retract
-    from ema_uq.gap import DiagnosisSettings, GapError, diagnose
+    from ema_uq.gap import GapError, diagnose
     from ema_uq.gap.candidates import OPERATING_POINT_FORMS, offered_forms
     from ema_uq.gap.selfcheck import build_cases, catalogue_families, under_catalogue
 
-    v5 = DiagnosisSettings(spanning_forms=True, operating_point_forms=True, nested_forms=False)
+    v5 = DiagnosisSettings(**method_switches(5))
     assert not set(OPERATING_POINT_FORMS) & set(offered_forms(get_model("htls").effect_catalogue,
-                                                              DiagnosisSettings(spanning_forms=True)))
+                                                              DiagnosisSettings(**method_switches(4))))
     families = catalogue_families("htls", v5)
     assert families == {"backlash": ["backlash", "backlash_output"], "stribeck": ["stribeck_directional"],
                         "shaft_compliance": ["shaft_compliance_loaded"],
@@ -300,6 +305,6 @@ def test_version_5_offers_each_family_by_the_forms_that_nest_the_others():
     assert set(under_catalogue(case, v5).candidates) == offered - {"stribeck_directional"}
     data = synthesize("htls", deploy_retract().slice(0, 200), noise=0.02, seed=1)
     with pytest.raises(GapError, match="method version 5 on; set DiagnosisSettings"):
-        diagnose([data], candidates=["ujoint_stroke"], settings=DiagnosisSettings(spanning_forms=True))
+        diagnose([data], candidates=["ujoint_stroke"], settings=DiagnosisSettings(**method_switches(4)))
     with pytest.raises(GapError, match="nested in other offered forms"):
         diagnose([data], candidates=["stribeck"], settings=v5)
