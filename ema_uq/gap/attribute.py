@@ -306,7 +306,8 @@ def diagnose(
     ``validation`` measurements (same concept, at least one channel in common with the
     estimation data) are the held-out data; without them the last ``settings.holdout_fraction``
     of each record is held out. ``candidates`` restricts the catalogue (default: every effect
-    available for the concept). ``strategy`` (default: :func:`strategy_for` the concept) says
+    the settings offer for the concept; a form they leave out because another offered form nests
+    it is diagnosed when named here). ``strategy`` (default: :func:`strategy_for` the concept) says
     how the concept is treated, ``settings`` (default: the strategy's) the fit knobs.
     Returns a :class:`GapResult`.
     """
@@ -332,10 +333,11 @@ def diagnose(
             if later:
                 raise GapError(f"candidate(s) {', '.join(later)} are offered from method version {version} on; set "
                                f"DiagnosisSettings({option}=True) or leave them out")
-        nested = [c for c in unknown if c in base.effect_catalogue]
-        if nested:
-            raise GapError(f"candidate(s) {', '.join(nested)} are nested in other offered forms and left out "
-                           "(DiagnosisSettings(nested_forms=False)); set nested_forms=True or leave them out")
+        # a form another offered form nests is left out of the default catalogue to save its refit
+        # (nested_forms off); asked for by name, it is what the user wants diagnosed
+        named = _catalogue(base, replace(settings, nested_forms=True))
+        catalogue = {**catalogue, **{c: named[c] for c in unknown if c in named}}
+        unknown = [c for c in unknown if c not in named]
         if unknown:
             raise GapError(f"unknown candidate effect(s) {', '.join(unknown)} for concept {concept}; "
                            f"choose from {', '.join(catalogue)}")
