@@ -471,8 +471,10 @@ def test_gap_json_contract_and_round_trip(effect_result, tmp_path):
     # channels and regimes as always; "stroke" was added beside them (where along the stroke the gap lies)
     assert set(data["where"]) == {"channels", "regimes", "stroke"} and isinstance(data["where"]["stroke"], list)
     assert {"shrink", "shrink_se", "shrink_record"} <= set(data["gap"])
-    # the default (method version 4) runs at the model's own step, not the converged-step option's
-    assert data["nominal"]["integration_step_s"] == get_model("htls").integration_step
+    # the step the default method runs the nominal model at: the contract's converged one or the model's own
+    htls = get_model("htls")
+    step = htls.converged_step if DiagnosisSettings().converged_step else htls.integration_step
+    assert data["nominal"]["integration_step_s"] == step
     path = tmp_path / "gap.json"
     io.write_json(path, data)
     back = GapResult.from_json(json.loads(path.read_text()))

@@ -293,8 +293,8 @@ def test_a_method_version_is_frozen_with_its_own_settings_and_catalogue(tmp_path
     older = {k: v for k, v in version2["settings"].items() if k != "spanning_forms"}
     assert bench.protocol_settings({"settings": older}).spanning_forms is False
     assert bench.method_settings(4) == bench.protocol_settings(frozen)
-    # the code's defaults are the default method version's settings (4 since block 5205)
-    assert bench.method_settings(bench.DEFAULT_METHOD_VERSION) == DiagnosisSettings() == bench.method_settings(4)
+    # the code's defaults are the default method version's settings
+    assert bench.method_settings(bench.DEFAULT_METHOD_VERSION) == DiagnosisSettings()
     default = bench.freeze(tmp_path / "default.yaml", root=root, development=[11], evaluation=[5207])
     assert "method_version" not in default and bench.protocol_settings(default) == DiagnosisSettings()
     assert bench.method_settings(7).decision_stop == "predicted"
