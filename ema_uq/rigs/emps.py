@@ -42,8 +42,7 @@ from ..models import Model, get_model
 from ..models import emps
 from ..simulate import simulate_batch
 from ..statistics import speed_regimes
-from . import MEASURED_RIG_SWITCHES
-from . import Rig
+from . import MEASURED_RIG_SWITCHES, Rig
 
 #: Published asymmetric-friction IDIM-LS variant (``Script_IDIM_LS_Asym_Fric.m``, no offset).
 PUBLISHED_ASYMMETRIC = {"M": 95.1540, "Fv+": 166.7061, "Fc+": 20.1440, "Fv-": 240.4236, "Fc-": 20.6277,
