@@ -62,13 +62,15 @@ def test_the_gap_verb_diagnoses_with_the_version_asked_for_and_says_which(short_
     monkeypatch.setattr(gap, "diagnose", fake_diagnose)
     written = []
     record = short_htls_record
-    for extra in ([], ["--method-version", "7"], ["--study", _study(tmp_path, "htls", method_version=2)]):
+    other = 7 if DEFAULT_METHOD_VERSION != 7 else 4
+    for extra in ([], ["--method-version", str(other)], ["--study", _study(tmp_path, "htls", method_version=2)]):
         assert cli.main(["gap", str(record), "--concept", "htls", "--out", str(tmp_path / "g.json"), *extra]) == 0
         written.append(io.read_json(tmp_path / "g.json")["method_version"])
-    assert written == [DEFAULT_METHOD_VERSION, 7, 2]
-    assert [s.decision_stop for s in seen] == ["extrapolated", "predicted", "extrapolated"]
+    assert written == [DEFAULT_METHOD_VERSION, other, 2]
+    assert [s.decision_stop for s in seen] == [method_switches(v)["decision_stop"]
+                                               for v in (DEFAULT_METHOD_VERSION, other, 2)]
     assert seen[0] == dataclasses.replace(seen[0], **method_switches(DEFAULT_METHOD_VERSION))
-    assert seen[1] == dataclasses.replace(seen[0], **method_switches(7))        # the rest of the strategy's settings kept
+    assert seen[1] == dataclasses.replace(seen[0], **method_switches(other))    # the rest of the strategy's settings kept
     assert seen[2] == dataclasses.replace(seen[0], **method_switches(2))
     capsys.readouterr()
     assert cli.main(["gap", str(record), "--concept", "htls", "--method-version", "9", "--out",
