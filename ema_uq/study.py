@@ -77,7 +77,7 @@ def _check_semantics(study: dict, source: str) -> None:
 def _check_gap_section(study: dict, model, source: str) -> None:
     """Hidden rig effects and diagnosis candidates must be effects of the concept."""
     from .models.effects import parse_effect
-    from .rigs import is_measured
+    from .rigs import is_measured, no_method_version
 
     gap = section(study, "gap")
     available = model.available_effects
@@ -92,9 +92,7 @@ def _check_gap_section(study: dict, model, source: str) -> None:
             raise StudyError(f"{source}: key 'gap.candidates': effect {name!r} is not available for {model.name}; "
                              f"available: {', '.join(available)}")
     if gap["method_version"] is not None and is_measured(model.name):
-        raise StudyError(f"{source}: key 'gap.method_version': the method versions are those of the synthetic "
-                         f"concepts' diagnosis, and {model.name} is a measured rig with a strategy of its own; "
-                         "drop the key")
+        raise StudyError(f"{source}: key 'gap.method_version': {no_method_version(model.name)}; drop the key")
 
 
 def section(study: dict[str, Any], name: str) -> dict[str, Any]:

@@ -52,13 +52,12 @@ def _method_switches(version: int | None, concept: str | None = None) -> dict:
     """The settings switches of ``--method-version`` (none without it), refused for a measured rig
     (``concept`` None: records of the synthetic concepts, as the self-check's)."""
     from ..gap.strategy import method_switches
-    from ..rigs import is_measured
+    from ..rigs import is_measured, no_method_version
 
     if version is None:
         return {}
     if concept is not None and is_measured(concept):
-        raise CLIError(f"--method-version {version}: the method versions are those of the synthetic concepts' "
-                       f"diagnosis, and {concept} is a measured rig with a strategy of its own; drop the option")
+        raise CLIError(f"--method-version {version}: {no_method_version(concept)}; drop the option")
     try:
         return method_switches(version)
     except ValueError as exc:

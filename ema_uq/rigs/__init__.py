@@ -20,13 +20,11 @@ import numpy as np
 #: concepts with measured records, each the module ``rigs/<concept>.py``
 RIGS = ("emps", "cranfield")
 
-#: the diagnosis switches (:class:`ema_uq.gap.strategy.DiagnosisSettings`) of the measured rigs'
-#: strategies: those of the synthetic concepts' default when the rigs' verdicts were last checked
-#: against their SOURCE notes (method version 4), written out so that a new default, decided on
-#: simulated records alone, cannot move a verdict on measured data unseen
-MEASURED_RIG_SWITCHES = {"model_form_allowance": True, "converged_step": False, "spanning_forms": True,
-                         "operating_point_forms": False, "nested_forms": True, "decision_fits": False,
-                         "decision_stop": "extrapolated"}
+#: the gap method version whose switches (:func:`ema_uq.gap.strategy.method_switches`) the measured
+#: rigs' strategies carry: the synthetic concepts' default when the rigs' verdicts were last checked
+#: against their SOURCE notes, named here so that a new default, decided on simulated records alone,
+#: cannot move a verdict on measured data unseen
+MEASURED_RIG_METHOD_VERSION = 4
 
 
 @dataclass(frozen=True)
@@ -63,3 +61,10 @@ def rig_of(concept: str) -> Rig | None:
 def is_measured(concept: str) -> bool:
     """Whether ``concept``'s records come from a rig (no truth is known) rather than its model."""
     return concept in RIGS
+
+
+def no_method_version(concept: str) -> str:
+    """Why a measured rig takes no gap method version (the command line and the study checker
+    refuse one with this reason)."""
+    return (f"the method versions are those of the synthetic concepts' diagnosis, and {concept} is a "
+            "measured rig with a strategy of its own")

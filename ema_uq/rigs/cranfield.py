@@ -60,11 +60,11 @@ from . import Rig
 from ..errors import EmaUqError
 from ..experiments import Measurement
 from ..gap.localize import RegimeRms, lag_products
-from ..gap.strategy import DiagnosisSettings, DiagnosisStrategy, Thresholds
+from ..gap.strategy import DiagnosisSettings, DiagnosisStrategy, Thresholds, method_switches
 from ..identify import FitProblem, FitResult, Settings, estimate
 from ..models import get_model
 from ..simulate import simulate_batch
-from . import MEASURED_RIG_SWITCHES
+from . import MEASURED_RIG_METHOD_VERSION
 from .cranfield_cycles import cycle_replicate_prediction
 from .cranfield_cycles import set_point_period  # noqa: F401 - still importable from here
 
@@ -280,8 +280,8 @@ def cranfield_strategy(reference_fit: Mapping[str, float] | None = None, metric:
 
     strategy = DiagnosisStrategy(
         name="cranfield", channels=CHANNELS,
-        settings=DiagnosisSettings(**MEASURED_RIG_SWITCHES, candidate_max_iterations=30, screen_base_parameters=None,
-                                   final_max_iterations=30),
+        settings=DiagnosisSettings(**method_switches(MEASURED_RIG_METHOD_VERSION), candidate_max_iterations=30,
+                                   screen_base_parameters=None, final_max_iterations=30),
         start_multiples=(0.3, 1.0, 3.0, 10.0), metric=metric or SystematicNrmse(), localize=residual_by_regime,
         where_source="held-out", thresholds=THRESHOLDS,
         replicate_prediction=cycle_replicate_prediction if replicates else None)

@@ -36,13 +36,13 @@ import numpy as np
 from ..errors import EmaUqError
 from ..experiments import Measurement
 from ..gap.localize import RegimeRms
-from ..gap.strategy import DiagnosisSettings, DiagnosisStrategy, Thresholds
+from ..gap.strategy import DiagnosisSettings, DiagnosisStrategy, Thresholds, method_switches
 from ..identify import FitProblem, FitResult, Settings, estimate
 from ..models import Model, get_model
 from ..models import emps
 from ..simulate import simulate_batch
 from ..statistics import speed_regimes
-from . import MEASURED_RIG_SWITCHES, Rig
+from . import MEASURED_RIG_METHOD_VERSION, Rig
 
 #: Published asymmetric-friction IDIM-LS variant (``Script_IDIM_LS_Asym_Fric.m``, no offset).
 PUBLISHED_ASYMMETRIC = {"M": 95.1540, "Fv+": 166.7061, "Fc+": 20.1440, "Fv-": 240.4236, "Fc-": 20.6277,
@@ -416,7 +416,8 @@ def gap_figure_data(result, held_out: Sequence[Measurement]) -> dict[str, Any]:
 #: lowers BIC by more than 10 and shrinks that error by at least 5 %; candidates rank by ΔBIC.
 EMPS_STRATEGY = DiagnosisStrategy(
     name="emps", channels=DEFAULT_CHANNELS, constants=emps.constants_for,
-    settings=DiagnosisSettings(**MEASURED_RIG_SWITCHES, nominal_max_iterations=Settings().max_iterations,
+    settings=DiagnosisSettings(**method_switches(MEASURED_RIG_METHOD_VERSION),
+                               nominal_max_iterations=Settings().max_iterations,
                                candidate_max_iterations=Settings().max_iterations, screen_base_parameters=None,
                                max_effects=2),
     start_multiples=(0.3, 1.0, 3.0), metric=ForceError(), localize=force_residual_by_regime,

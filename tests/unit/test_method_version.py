@@ -119,8 +119,8 @@ def test_the_measured_rigs_keep_their_switches_when_the_synthetic_default_change
 
     from ema_uq import rigs
 
-    assert rigs.MEASURED_RIG_SWITCHES == method_switches(4)
-    other = next(v for v in METHOD_VERSIONS if method_switches(v) != rigs.MEASURED_RIG_SWITCHES)
+    assert rigs.MEASURED_RIG_METHOD_VERSION == 4
+    other = next(v for v in METHOD_VERSIONS if v != rigs.MEASURED_RIG_METHOD_VERSION)
     script = (
         "import functools\n"
         "from ema_uq.gap import strategy\n"
