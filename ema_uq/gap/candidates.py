@@ -141,7 +141,7 @@ def _screened_fit(run: _Diagnosis, problem: FitProblem, augmented, names: Sequen
             n_extra += problem.free_index.size
             fit_problem = FitProblem(model=augmented,
                                      parameters=augmented.parameters.freeing_only(keep + allowed + names),
-                                     **run.problem_args)
+                                     predictions=problem.predictions, **run.problem_args)
     fit = _robust_estimate(fit_problem, start, _fit_settings(settings, cap))
     fit.n_simulations += n_extra
     return fit

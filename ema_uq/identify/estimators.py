@@ -89,8 +89,9 @@ class _Counter:
 
 
 def _evaluate(problem: FitProblem, thetas: np.ndarray, counter: _Counter) -> list[_State]:
+    runs = problem.predictions.runs
     predicted = problem.predict(thetas)
-    counter.n += thetas.shape[0]
+    counter.n += problem.predictions.runs - runs
     return [_State(problem, thetas[i], predicted[i]) for i in range(thetas.shape[0])]
 
 
@@ -113,8 +114,9 @@ def _information(problem: FitProblem, state: _State, scale: np.ndarray, counter:
     adaptive = problem.model.integrator != "rk4"
     free = np.vstack([state.free, state.free[None, :] + steps]) if adaptive else state.free[None, :] + steps
     thetas = problem.full_vectors(free, state.theta)
+    runs = problem.predictions.runs
     predicted = problem.predict(thetas, share_steps=adaptive)
-    counter.n += thetas.shape[0]
+    counter.n += problem.predictions.runs - runs
     base, predicted = (predicted[0], predicted[1:]) if adaptive else (state.predicted, predicted)
     # S[k, c, j] = d y_kc / d s_j in scaled coordinates
     if central:

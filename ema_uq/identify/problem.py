@@ -45,6 +45,60 @@ def _as_slice(index: np.ndarray) -> slice | np.ndarray:
     return index
 
 
+#: bytes of predictions one :class:`PredictionMemo` keeps (the most recently stored first)
+PREDICTION_MEMO_BYTES = 64 * 2 ** 20
+
+
+class PredictionMemo:
+    """The predicted channels of parameter vectors already simulated for one set of prediction
+    inputs (model, measurements, channels, constants), so that a vector asked for again is
+    copied instead of run again: a fit repeats vectors when it computes the sensitivities
+    at a point it has already differenced (the point a failed step left unchanged, the start
+    a reduced or narrower refit of the same model begins from). Each vector's run is
+    independent of the batch it was run in, so the copy carries the same numbers.
+
+    Bounded by :data:`PREDICTION_MEMO_BYTES` (least recently stored dropped first). ``runs``
+    counts the parameter vectors actually simulated through it.
+    """
+
+    def __init__(self, owner: "FitProblem", capacity_bytes: int | None = None) -> None:
+        self._signature = _prediction_inputs(owner)
+        self._rows: dict[bytes, np.ndarray] = {}
+        self._bytes = 0
+        self.capacity_bytes = PREDICTION_MEMO_BYTES if capacity_bytes is None else int(capacity_bytes)
+        self.runs = 0
+
+    def serves(self, problem: "FitProblem") -> bool:
+        """Whether ``problem`` predicts from the same inputs (so the same vectors give the same outputs)."""
+        theirs = _prediction_inputs(problem)
+        mine = self._signature
+        return (theirs[0] is mine[0] and len(theirs[1]) == len(mine[1])
+                and all(a is b for a, b in zip(theirs[1], mine[1])) and theirs[2:] == mine[2:])
+
+    def __contains__(self, key: bytes) -> bool:
+        return key in self._rows
+
+    def get(self, key: bytes) -> np.ndarray:
+        return self._rows[key]
+
+    def store(self, keys, predicted: np.ndarray) -> None:
+        for key, row in zip(keys, predicted):
+            if row.nbytes > self.capacity_bytes:
+                return
+            self._rows[key] = np.array(row)      # a copy: the caller may write into its result
+            self._bytes += row.nbytes
+        while self._bytes > self.capacity_bytes:
+            oldest = next(iter(self._rows))
+            self._bytes -= self._rows.pop(oldest).nbytes
+
+
+def _prediction_inputs(problem: "FitProblem") -> tuple:
+    """What a prediction depends on besides the parameter vector: model and measurements (by
+    identity), channels and constants (by value)."""
+    return (problem.model, tuple(problem.measurements), tuple(problem.channels),
+            np.asarray(problem.constants, dtype=np.float64).tobytes())
+
+
 @dataclass(frozen=True)
 class _Block:
     """One experiment's data restricted to the fitted channels and complete samples."""
@@ -69,6 +123,10 @@ class FitProblem:
     model : the model to fit (default: the measurements' concept). An augmented model
         (``Model.with_effects``) is allowed when it is built on the measurements' concept;
         its parameter layout (base + effect parameters) then sets ``parameters``.
+    predictions : the :class:`PredictionMemo` of another problem with the same model,
+        measurements, channels and constants (its free parameters may differ), to reuse the
+        vectors it simulated; default, or when the inputs differ: a memo of its own.
+        :func:`dataclasses.replace` passes it on, and it is replaced when the inputs change.
     """
 
     measurements: Sequence[Measurement]
@@ -76,6 +134,7 @@ class FitProblem:
     channels: Sequence[str] | None = None
     constants: np.ndarray | None = None
     model: Model | None = None
+    predictions: PredictionMemo | None = field(default=None, repr=False, compare=False)
     blocks: tuple[_Block, ...] = field(init=False, repr=False)
     channel_index: np.ndarray = field(init=False, repr=False)
     _observed: np.ndarray = field(init=False, repr=False, compare=False)
@@ -147,6 +206,8 @@ class FitProblem:
         observed.flags.writeable = False
         object.__setattr__(self, "_observed", observed)
         object.__setattr__(self, "_channel_take", _as_slice(self.channel_index))
+        if self.predictions is None or not self.predictions.serves(self):
+            object.__setattr__(self, "predictions", PredictionMemo(self))
 
     # --- sizes -------------------------------------------------------------------
     @property
@@ -174,10 +235,31 @@ class FitProblem:
     def predict(self, thetas: np.ndarray, *, share_steps: bool = False) -> np.ndarray:
         """Predicted channels (n_sets, N, n_channels) for full parameter vectors (n_sets, n_params).
 
-        Every experiment is one batched simulator call over all sets. ``share_steps``: every
-        set follows the adaptive step sequence of the first (finite differences around it).
+        Every experiment is one batched simulator call over the sets not already in
+        :attr:`predictions` (a set simulated before is copied from there: the same numbers,
+        without the run). ``share_steps``: every set follows the adaptive step sequence of the
+        first (finite differences around it); such a batch of an adaptive integrator is run
+        whole, since its sets' outputs depend on the first.
         """
-        thetas = np.atleast_2d(thetas)
+        thetas = np.atleast_2d(np.asarray(thetas, dtype=np.float64))
+        memo = self.predictions
+        if share_steps and self.model.integrator != "rk4":
+            memo.runs += thetas.shape[0]
+            return self._simulate(thetas, share_steps=True)
+        keys = [row.tobytes() for row in thetas]
+        missing = list(dict.fromkeys(k for k in keys if k not in memo))
+        if missing:
+            order = {k: i for i, k in enumerate(keys)}
+            fresh = self._simulate(thetas[[order[k] for k in missing]])
+            memo.runs += len(missing)
+            if len(missing) == len(keys):       # nothing repeated: no assembly
+                memo.store(missing, fresh)
+                return fresh
+            memo.store(missing, fresh)
+        return np.stack([memo.get(k) for k in keys])
+
+    def _simulate(self, thetas: np.ndarray, share_steps: bool = False) -> np.ndarray:
+        """The simulator's predicted channels (n_sets, N, n_channels), every set run."""
         cols = self._channel_take
         if len(self.blocks) == 1 and self.blocks[0].rows.size == self.blocks[0].time.size and isinstance(cols, slice):
             b = self.blocks[0]            # every sample complete, channels contiguous: a view, no copy

@@ -501,7 +501,8 @@ def test_cli_start_of_another_concept(cli_files):
 
 
 def test_a_fit_without_cramer_rao_bounds_reaches_the_same_estimate_for_fewer_runs(problem, start, gn_fit):
-    bare = estimate(problem, start=start, settings=Settings(cramer_rao=False))
+    # a problem of its own: on the shared one every run would be served from the first fit's
+    bare = estimate(FitProblem(list(problem.measurements)), start=start, settings=Settings(cramer_rao=False))
     np.testing.assert_array_equal(bare.estimate, gn_fit.estimate)
     assert bare.objective == gn_fit.objective
     free = problem.free_index
@@ -509,3 +510,53 @@ def test_a_fit_without_cramer_rao_bounds_reaches_the_same_estimate_for_fewer_run
     # the central-difference information at the estimate: 2 p runs saved
     assert gn_fit.n_simulations - bare.n_simulations == 2 * free.size
     assert any("not computed" in w for w in bare.warnings)
+
+
+# --------------------------------------------------------------------------------------
+# predictions already simulated are copied, not run again
+# --------------------------------------------------------------------------------------
+def test_a_repeated_vector_is_served_with_the_same_numbers_and_no_run(short, truth):
+    problem = FitProblem([short])
+    thetas = np.array([truth, truth * 1.01, truth * 0.99])
+    first = problem.predict(thetas[:2])
+    assert problem.predictions.runs == 2
+    mixed = problem.predict(thetas[[1, 2, 0, 2]])     # two known, one new asked twice
+    assert problem.predictions.runs == 3
+    fresh = FitProblem([short]).predict(thetas)       # every vector run, in another batch
+    np.testing.assert_array_equal(mixed, fresh[[1, 2, 0, 2]])
+    np.testing.assert_array_equal(first, fresh[:2])
+    mixed[0] = 0.0                                    # the caller owns its result
+    np.testing.assert_array_equal(problem.predict(thetas[1]), fresh[1:2])
+
+
+def test_a_fit_reaches_the_same_estimate_with_or_without_the_memo(short, truth, monkeypatch):
+    parameters = get_model("htls").parameters.freeing_only(["J", "B_TS1", "C_TS1", "k_n"])
+    start = perturbed_start(parameters, 0.2, seed=5, around=truth)
+    served = estimate(FitProblem([short], parameters=parameters), start=start)
+    monkeypatch.setattr("ema_uq.identify.problem.PREDICTION_MEMO_BYTES", 0)
+    unserved_problem = FitProblem([short], parameters=parameters)
+    unserved = estimate(unserved_problem, start=start)
+    assert unserved_problem.predictions.runs == unserved.n_simulations
+    np.testing.assert_array_equal(served.estimate, unserved.estimate)
+    np.testing.assert_array_equal(served.std, unserved.std)
+    assert served.objective == unserved.objective and served.iterations == unserved.iterations
+    # the final central differences repeat the last forward ones (+h) when the last step failed
+    assert served.n_simulations <= unserved.n_simulations
+
+
+def test_the_memo_follows_the_prediction_inputs(short, data, truth):
+    problem = FitProblem([short], parameters=get_model("htls").parameters.freeing_only(["J"]))
+    problem.predict(truth)
+    narrower = dataclasses.replace(problem, parameters=get_model("htls").parameters.freeing_only(["k_n"]))
+    assert narrower.predictions is problem.predictions          # same model and data: shared
+    other_model = dataclasses.replace(problem, model=dataclasses.replace(problem.model, integrator="dopri5"))
+    assert other_model.predictions is not problem.predictions
+    other_data = FitProblem([data], predictions=problem.predictions)
+    assert other_data.predictions is not problem.predictions
+    other_channels = FitProblem([short], channels=("Omega",), predictions=problem.predictions)
+    assert other_channels.predictions is not problem.predictions
+    # an adaptive batch that shares the first set's steps is run whole, and not kept
+    runs = other_model.predictions.runs
+    other_model.predict(np.array([truth, truth * 1.01]), share_steps=True)
+    other_model.predict(np.array([truth, truth * 1.01]), share_steps=True)
+    assert other_model.predictions.runs == runs + 4
