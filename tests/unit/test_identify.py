@@ -529,6 +529,19 @@ def test_a_repeated_vector_is_served_with_the_same_numbers_and_no_run(short, tru
     np.testing.assert_array_equal(problem.predict(thetas[1]), fresh[1:2])
 
 
+def test_a_full_memo_drops_its_oldest_vectors_without_losing_a_batch(short, truth, monkeypatch):
+    one_row = FitProblem([short]).predict(truth).nbytes
+    monkeypatch.setattr("ema_uq.identify.problem.PREDICTION_MEMO_BYTES", 2 * one_row)
+    problem = FitProblem([short])
+    thetas = truth * np.linspace(0.98, 1.02, 4)[:, None]
+    problem.predict(thetas[:2])
+    out = problem.predict(thetas)               # storing the two new vectors drops the two known
+    np.testing.assert_array_equal(out, FitProblem([short]).predict(thetas))
+    assert problem.predictions.runs == 4
+    problem.predict(thetas[:1])                 # dropped: run again
+    assert problem.predictions.runs == 5
+
+
 def test_a_fit_reaches_the_same_estimate_with_or_without_the_memo(short, truth, monkeypatch):
     parameters = get_model("htls").parameters.freeing_only(["J", "B_TS1", "C_TS1", "k_n"])
     start = perturbed_start(parameters, 0.2, seed=5, around=truth)
