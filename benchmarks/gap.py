@@ -20,7 +20,7 @@ no-effect case, full outputs), scored by the same rules.
 
 Frozen protocol (``--protocol benchmarks/gap_protocol.yaml``): the file fixes the catalogue
 (per concept, family -> forms), the thresholds and strategy knobs, the self-check settings and
-targets, a SHA-256 hash of the diagnosis sources (:data:`SOURCE_FILES` and ``ema_uq/gap/*.py``)
+targets, a SHA-256 hash of the diagnosis sources (:data:`SOURCE_PACKAGES`, :data:`SOURCE_FILES`)
 and two seed blocks: ``development`` (run and look at as often as wanted) and ``evaluation``
 (run once on the final method). ``--block development|evaluation`` runs every self-check
 seed of the block, one outcome JSON per case under ``<results>/<block>/<sources hash>/``
@@ -84,9 +84,14 @@ from ema_uq.simulate import simulate_batch
 
 PEER_NOISE = 0.02
 ROOT = Path(__file__).resolve().parents[1]
-#: sources of the diagnosis besides ema_uq/gap/*.py whose hash the protocol freezes
-SOURCE_FILES = ["ema_uq/models/effects.py", "ema_uq/models/effect_kernels.py", "ema_uq/models/htls.py",
-                "ema_uq/models/lths.py", "ema_uq/models/cranfield.py"]
+#: packages whose every module the protocol hashes: the diagnosis, the estimator it fits with, the
+#: simulator and the models (a change in any of them can move a verdict)
+SOURCE_PACKAGES = ["ema_uq/gap", "ema_uq/identify", "ema_uq/simulate", "ema_uq/models"]
+#: single modules the diagnosis computes with, hashed beside the packages
+SOURCE_FILES = ["ema_uq/experiments.py", "ema_uq/params.py", "ema_uq/statistics.py"]
+#: modules a diagnosis imports that hold no number it computes (messages, thread counts, lazy
+#: imports): not hashed, so that mending a message needs no attestation
+UNHASHED_MODULES = frozenset({"ema_uq/__init__.py", "ema_uq/errors.py", "ema_uq/threads.py"})
 #: self-check seeds in use before the protocol (reported figures, defaults, calibration): never evaluation seeds
 USED_SEEDS = frozenset({1, 2, 3, 5, DEFAULT_SEED, *CALIBRATION_SEEDS})
 #: per-case outcomes of the protocol's blocks, committed: the evidence behind the reported
@@ -135,8 +140,9 @@ def circular_peer(concept: str, seed: int) -> dict:
 # the frozen protocol
 # ----------------------------------------------------------------------------------------
 def source_globs(root: Path = ROOT) -> list[str]:
-    """ema_uq/gap/*.py under ``root``, relative, sorted."""
-    return sorted(p.relative_to(root).as_posix() for p in (Path(root) / "ema_uq" / "gap").glob("*.py"))
+    """The modules of :data:`SOURCE_PACKAGES` under ``root``, relative, sorted."""
+    return sorted(p.relative_to(root).as_posix() for package in SOURCE_PACKAGES
+                  for p in (Path(root) / package).glob("*.py"))
 
 
 def hash_sources(root: Path = ROOT) -> tuple[str, dict[str, str]]:

@@ -6,8 +6,10 @@ import contextlib
 import dataclasses
 import importlib.util
 import json
+import os
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -245,6 +247,19 @@ def _copy_of_the_sources(bench, root: Path) -> Path:
         target.parent.mkdir(parents=True, exist_ok=True)
         shutil.copy(ROOT / rel, target)
     return root
+
+
+def test_the_protocol_hashes_every_module_a_diagnosis_computes_with():
+    bench = _bench()
+    code = ("import sys, ema_uq.gap.attribute, ema_uq.gap.selfcheck, ema_uq.gap.variants\n"
+            "print('\\n'.join(m.__file__ for n, m in sys.modules.items() if n.startswith('ema_uq')))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                          cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    imported = {Path(f).resolve().relative_to(ROOT).as_posix() for f in done.stdout.split()}
+    hashed = set(bench.source_globs(ROOT)) | set(bench.SOURCE_FILES)
+    assert "ema_uq/identify/estimators.py" in imported and "ema_uq/simulate/integrators.py" in imported
+    assert imported - hashed - bench.UNHASHED_MODULES == set()
+    assert set(bench.hash_sources(ROOT)[1]) == hashed
 
 
 def test_protocol_refuses_the_evaluation_block_when_a_source_changed(tmp_path, monkeypatch):
