@@ -98,15 +98,13 @@ def _refit(run: _Diagnosis, reference: _Reference, name: str, effect, start: np.
     names = _effect_parameter_names(augmented, reference.model)
     fixed = run.fixed
     problem = FitProblem(model=augmented, parameters=augmented.parameters.fixing(fixed), **run.problem_args)
-    n_extra = 0
     starts = [(start, None)]
     if start is None:
         grid = _start_grid(augmented, reference.fit.as_dict(), effect, names, run.strategy.start_multiples)
         best, objective, predicted = _best_point(problem, grid)
-        profiled, profiled_prediction, sims = _profiled_start(problem, grid[best], predicted[best], objective,
+        profiled, profiled_prediction, _ = _profiled_start(problem, grid[best], predicted[best], objective,
                                                               augmented.parameters, names,
                                                               run.strategy.start_multiples)
-        n_extra += grid.shape[0] + sims
         starts = [(profiled, profiled_prediction)]
         if any(_is_phase(n, augmented.parameters[n]) for n in names) and not np.array_equal(profiled, grid[best]):
             # an amplitude profiled at a grid phase settles where that phase is least wrong, and the
@@ -118,7 +116,9 @@ def _refit(run: _Diagnosis, reference: _Reference, name: str, effect, start: np.
     objectives = [_full_objective(problem, f.estimate, f.log_det_r) for f in fits]
     k = _finite_argmin(objectives)
     fit = fits[k]
-    fit.n_simulations = sum(f.n_simulations for f in fits) + n_extra
+    # every run of the refit went through this problem's memo (the narrower refits share it):
+    # start search, sensitivities, each start's fit, the attempts a robust fit discarded
+    fit.n_simulations = problem.predictions.runs
     return augmented, names, fit, objectives[k]
 
 
@@ -128,7 +128,7 @@ def _screened_fit(run: _Diagnosis, problem: FitProblem, augmented, names: Sequen
     there, known from the start search) picks the base parameters a screening refit frees, and
     is None for the final refit, which frees every parameter."""
     settings, base, fixed = run.settings, run.root, run.fixed
-    fit_problem, cap, n_extra = problem, settings.final_max_iterations, 0
+    fit_problem, cap = problem, settings.final_max_iterations
     if screening:
         cap = settings.candidate_max_iterations
         count = settings.screen_base_parameters
@@ -138,13 +138,10 @@ def _screened_fit(run: _Diagnosis, problem: FitProblem, augmented, names: Sequen
             keep = [n for n in _relevant_base(problem, start, start_prediction, names,
                                               count + len(fixed) + len(allowed))
                     if n not in fixed and n not in allowed][:count]
-            n_extra += problem.free_index.size
             fit_problem = FitProblem(model=augmented,
                                      parameters=augmented.parameters.freeing_only(keep + allowed + names),
                                      predictions=problem.predictions, **run.problem_args)
-    fit = _robust_estimate(fit_problem, start, _fit_settings(settings, cap))
-    fit.n_simulations += n_extra
-    return fit
+    return _robust_estimate(fit_problem, start, _fit_settings(settings, cap))
 
 
 def _fit_settings(settings, max_iterations: int) -> Settings:
@@ -192,13 +189,14 @@ def _fit_nominal(run: _Diagnosis):
         nominal = _held_base_fit(run, start)
     else:
         run.fixed = _unidentifiable_parameters(problem, start)
-        run.n_sims += problem.free_index.size + 1
         if run.fixed:
-            problem = FitProblem(model=base, parameters=base.parameters.fixing(run.fixed), **run.problem_args)
+            problem = FitProblem(model=base, parameters=base.parameters.fixing(run.fixed),
+                                 predictions=problem.predictions, **run.problem_args)
         run.say(f"nominal ML fit of {base.name} on {problem.n_samples} samples x {len(d.channels)} channels"
                 + (f" ({', '.join(run.fixed)} held at nominal: these channels cannot determine them)"
                    if run.fixed else ""))
         nominal = _robust_estimate(problem, start, _fit_settings(settings, settings.nominal_max_iterations))
+        nominal.n_simulations = problem.predictions.runs     # the identifiability test's runs too
     run.n_sims += nominal.n_simulations
     est_records = run.records(base, nominal.estimate, held=False)
     held_records = run.records(base, nominal.estimate, held=True)

@@ -174,7 +174,8 @@ def _robust_estimate(problem: FitProblem, start: np.ndarray, settings: Settings)
     remaining iterations. A start whose information matrix Gauss-Newton found singular goes
     straight to the Levenberg-Marquardt fit that holds the undetermined parameters: a plain
     Levenberg-Marquardt attempt would compute the same matrix at the same start and stop there
-    too (a Jacobian's simulations for nothing; neither attempt's simulations are counted)."""
+    too (a Jacobian's simulations for nothing). The fit returned counts its own runs; those of a
+    discarded attempt show in the problem's ``predictions.runs``, which the diagnosis reports."""
     try:
         fit = estimate(problem, method="gn", start=start, settings=settings)
     except SingularInformationError:

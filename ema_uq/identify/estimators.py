@@ -47,8 +47,8 @@ class Settings:
     #: steps through a curved valley can come before a large decrease)
     decrease_estimate: str = "extrapolated"
     #: with ``unidentifiable="fix"``: report the identifiable combination of each held group
-    #: (:func:`ema_uq.identify.reduction.identifiable_combinations`: 2 x free + 1 simulations at
-    #: the estimate); off for callers that read only the fit
+    #: (:func:`ema_uq.identify.reduction.identifiable_combinations`: 2 x free simulations around
+    #: the estimate, which the fit has simulated already); off for callers that read only the fit
     combinations: bool = True
 
     def __post_init__(self) -> None:

@@ -209,7 +209,7 @@ def information(problem: FitProblem, theta: np.ndarray, *, rtol: float = RANK_RT
     """Fisher information of ``problem``'s free parameters at the full vector ``theta``
     (R estimated from the residuals there, or ``noise_covariance`` (n_channels, n_channels)
     when given: the expected information before any fit); returns it and the number of
-    simulated sets."""
+    sets simulated (those the problem's prediction memo held are not run again)."""
     theta = np.asarray(theta, dtype=float)
     idx = problem.free_index
     names = problem.parameters.free_names
@@ -222,6 +222,7 @@ def information(problem: FitProblem, theta: np.ndarray, *, rtol: float = RANK_RT
     h = FD_RELATIVE_STEP * scale
     steps = np.concatenate([np.diag(h), -np.diag(h)])
     thetas = problem.full_vectors(np.vstack([free, free + steps]), theta)
+    runs = problem.predictions.runs
     predicted = problem.predict(thetas, share_steps=True)     # row 0 sets the steps of all
     r = covariance(problem.observed - predicted[0]) if noise_covariance is None else noise_covariance
     whiten = np.linalg.cholesky(np.linalg.inv(r))               # R⁻¹ = L Lᵀ
@@ -230,7 +231,7 @@ def information(problem: FitProblem, theta: np.ndarray, *, rtol: float = RANK_RT
     pos, _, std = problem.prior_terms()
     prior = np.zeros(p)
     prior[pos] = (scale[pos] / std) ** 2
-    return information_from_sensitivities(weighted, names, scale, prior, rtol), thetas.shape[0]
+    return information_from_sensitivities(weighted, names, scale, prior, rtol), problem.predictions.runs - runs
 
 
 def identifiable_subset(info: Information, exclude: Sequence[str] = (), rtol: float = SELECT_RTOL,
