@@ -110,12 +110,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        if args.verb in SIMULATING_VERBS:
+            from ..threads import follow_scheduler_threads
+
+            # before the study is read: reading it imports the models, and so numba, which takes
+            # its thread count once; told afterwards, it launched a thread per core and refused
+            # the job's share at the next compilation (every case of a one-thread self-check job)
+            follow_scheduler_threads()
         _apply_study(args, _given_options(argv))
         if args.verb in SIMULATING_VERBS:
             from ..progress import first_compile_notice
-            from ..threads import follow_scheduler_threads
-
-            follow_scheduler_threads()
 
             first_compile_notice(("simulate.integrators", "gap.variants") if args.verb == "gap-selfcheck"
                                  else ("simulate.integrators",))

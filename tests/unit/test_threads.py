@@ -50,6 +50,33 @@ def test_the_command_line_gives_numba_the_jobs_share(tmp_path):
     assert "numba threads 1" in done.stdout
 
 
+def test_the_jobs_share_is_set_before_a_study_brings_numba_in(tmp_path):
+    """Reading a study imports the models and so numba, which reads its thread count once: the
+    share must be set before (told after, a one-thread workflow job launched a thread per core and
+    every self-check case then failed at its first compilation)."""
+    import subprocess
+    import sys
+
+    script = ("import sys\n"
+              "import ema_uq.threads as threads\n"
+              "real, seen = threads.follow_scheduler_threads, []\n"
+              "def spy(*args, **kwargs):\n"
+              "    seen.append('numba' in sys.modules)\n"
+              "    return real(*args, **kwargs)\n"
+              "threads.follow_scheduler_threads = spy\n"
+              "from ema_uq.cli import main\n"
+              f"code = main(['simulate', '--concept', 'htls', '--study', 'studies/htls.yaml', '--role', 'estimation', '--out', {str(tmp_path / 'run.csv')!r}])\n"
+              "import numba\n"
+              "print('numba imported before the share:', seen, 'threads', numba.get_num_threads()); sys.exit(code)\n")
+    environ = {k: v for k, v in os.environ.items() if k != "NUMBA_NUM_THREADS"}
+    environ["OMP_NUM_THREADS"] = "1"
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    done = subprocess.run([sys.executable, "-c", script], env=environ, capture_output=True, text=True, timeout=600,
+                          cwd=root)
+    assert done.returncode == 0, done.stderr
+    assert "numba imported before the share: [False] threads 1" in done.stdout, done.stdout
+
+
 _ORPHANED_POOL = """
 import os, sys, time
 from concurrent.futures import ProcessPoolExecutor
