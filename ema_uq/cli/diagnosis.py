@@ -186,6 +186,7 @@ def _run_gap_selfcheck(args: argparse.Namespace) -> str:
                 raise CLIError("--gather joins the parts of a run; give it without --chunk")
             result = gather([io.read_json(path) for path in args.gather])
             io.write_json(args.out, result.to_json())
+            _refuse_failed_cases(result, args.out)
             return f"wrote {args.out}: {len(result.outcomes)} cases gathered from {len(args.gather)} part(s); " + \
                 _selfcheck_scores(result)
         result = self_check(seed=args.seed, quick=args.quick, concepts=split_names(args.concepts), sensors=split_names(args.sensors),
@@ -197,8 +198,25 @@ def _run_gap_selfcheck(args: argparse.Namespace) -> str:
     # how the cases are scattered and where they are cached cannot change a score
     result.provenance = run_provenance(args, seed=args.seed, leave_out=("jobs", "chunk", "cache", "out"))
     io.write_json(args.out, result.to_json())
+    _refuse_failed_cases(result, args.out)
     part = f" (part {args.chunk})" if args.chunk else ""
     return f"wrote {args.out}: {len(result.outcomes)} cases{part}, " + _selfcheck_scores(result)
+
+
+class SelfCheckFault(RuntimeError):
+    """Self-check cases whose diagnosis raised: a fault of the package, not of the input."""
+
+
+def _refuse_failed_cases(result, out) -> None:
+    """End the run as a fault (exit status 3) when a case's diagnosis raised: its scores would
+    count a crash as a wrong verdict, and a workflow would report them as the method's. The
+    outcomes are written first, so the cases that did run are kept."""
+    failed = [o for o in result.outcomes if o.verdict == "error"]
+    if failed:
+        first = failed[0]
+        raise SelfCheckFault(f"{len(failed)} of {len(result.outcomes)} self-check cases ended in an error (first: "
+                             f"{first.case.case_id}: {first.message}); the outcomes are in {out}, but no score of "
+                             "this run stands for the method")
 
 
 def _selfcheck_scores(result) -> str:

@@ -153,6 +153,31 @@ def _fake_run_case(case, settings=None):
                                  0.01, None, 0.02, 0.01, {"x": float(case.seed % 5)}, 0.5)
 
 
+def test_a_case_whose_diagnosis_raised_ends_the_run_as_a_fault(monkeypatch, tmp_path, capsys):
+    """A crash is not a wrong verdict: the outcomes are written, and the verb exits with the
+    package-fault status naming the case, so a workflow stops instead of reporting the scores."""
+    def crashing(case, settings=None):
+        if case.kind == "none":
+            return selfcheck.CaseOutcome(case, "error", None, None, "-", float("nan"), float("nan"), None,
+                                         float("nan"), float("nan"), {}, 0.1, message="RuntimeError: boom")
+        return _fake_run_case(case)
+
+    monkeypatch.setattr(selfcheck, "run_case", crashing)
+    out = tmp_path / "part.json"
+    args = ["gap-selfcheck", "--seed", "11", "--concepts", "htls", "--sensors", "realistic", "--none-per-set", "2",
+            "--kinds", "none,out_of_catalogue", "--quiet", "--out", str(out)]
+    assert cli_main(args) == 3
+    err = capsys.readouterr().err
+    kept = selfcheck.SelfCheckResult.from_json(json.loads(out.read_text()))     # every outcome written
+    verdicts = [o.verdict for o in kept.outcomes]
+    assert verdicts.count("error") == 2 and "unexplained" in verdicts
+    assert f"2 of {len(verdicts)} self-check cases ended in an error" in err and "RuntimeError: boom" in err
+    # gathering parts that hold such cases is refused the same way
+    assert cli_main(["gap-selfcheck", "--gather", str(out), "--out", str(tmp_path / "all.json")]) == 3
+    monkeypatch.setattr(selfcheck, "run_case", _fake_run_case)
+    assert cli_main(args) == 0
+
+
 def test_chunks_gathered_equal_one_run(monkeypatch, tmp_path):
     monkeypatch.setattr(selfcheck, "run_case", _fake_run_case)
     kw = dict(seed=11, concepts=["htls"], sensors=["realistic"], none_per_set=3)
