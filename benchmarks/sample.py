@@ -170,7 +170,8 @@ def _fixed_run(args) -> None:
     _time_per_set(problem, fit, settings)                  # compiles every kernel the run uses
     problem = with_integrator(problem, args.integrator)
     posterior = bayes.LogPosterior(problem, bayes.build_priors(problem), fit.estimate)
-    free = np.repeat(fit.estimate[problem.free_index][None], batch, axis=0)
+    # distinct vectors, as a batch of walkers is: identical ones are simulated once
+    free = fit.estimate[problem.free_index][None] * (1.0 + 1e-9 * np.arange(batch)[:, None])
     thetas = problem.full_vectors(free, fit.estimate)
     sim, lin = [], []
     for _ in range(5):
