@@ -320,17 +320,20 @@ def family_of(result, concept: str) -> str | None:
 
 def run_case(case: Case, settings: DiagnosisSettings | None = None) -> CaseOutcome:
     """Simulate a case's records, diagnose them blind (on the case's catalogue) and return the outcome."""
-    estimation, validation, validation2, truth = case_records(case)
-    stress = dict(truth.get("stress") or {})
+    truth: dict[str, Any] = {"parameters": {}}
     t0 = time.perf_counter()
     candidates = None if case.candidates is None else list(case.candidates)
     try:
+        # the records inside the guard too: a variant whose simulation fails is that case's error
+        estimation, validation, validation2, truth = case_records(case)
+        t0 = time.perf_counter()
         result = diagnose([estimation], [validation, validation2], candidates=candidates, settings=settings,
                           seed=case.seed)
     except Exception as exc:    # noqa: BLE001 - one failing case must not lose a campaign's other outcomes
         return CaseOutcome(case, "error", None, None, "-", float("nan"), float("nan"), None, float("nan"),
                            float("nan"), dict(truth["parameters"]), time.perf_counter() - t0,
-                           message=f"{type(exc).__name__}: {exc}", stress=stress)
+                           message=f"{type(exc).__name__}: {exc}", stress=dict(truth.get("stress") or {}))
+    stress = dict(truth.get("stress") or {})
     gap = result.gap
     top = [{"effect": c.effect, "score": c.score, "delta_bic": c.delta_bic, "held_out_gain": c.held_out_gain,
             "signature_match": c.signature_match} for c in result.ranking[:3]]
@@ -374,10 +377,11 @@ def _settings_record(settings: DiagnosisSettings | None) -> dict[str, Any]:
 
 
 def _cached(cache: Path | None, case: Case, settings: DiagnosisSettings | None = None) -> CaseOutcome | None:
-    """The outcome stored for ``case``, or None: none stored, a torn file, or one diagnosed with
-    other settings (e.g. under an earlier default method; files written before the settings were
-    recorded carry none and are read back, as the folders of the frozen protocols, named by the
-    hash of the sources, need)."""
+    """The outcome stored for ``case``, or None: none stored, a torn file, a case whose diagnosis
+    raised (a crash is no verdict: a resumed run diagnoses it again rather than scoring the old
+    exception), or one diagnosed with other settings (e.g. under an earlier default method; files
+    written before the settings were recorded carry none and are read back, as the folders of the
+    frozen protocols, named by the hash of the sources, need)."""
     if cache is None:
         return None
     path = _cache_file(cache, case)
@@ -388,6 +392,8 @@ def _cached(cache: Path | None, case: Case, settings: DiagnosisSettings | None =
         outcome = CaseOutcome.from_json(data)
     except (ValueError, KeyError, TypeError):
         return None                     # a torn file: diagnose again
+    if outcome.verdict == "error":
+        return None
     stored, current = data.get("diagnosis_settings") or {}, _settings_record(settings)
     # a setting added since the file was written is not in it: what it stored must match
     if any(key not in current or current[key] != value for key, value in stored.items()):

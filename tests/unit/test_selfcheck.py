@@ -67,6 +67,17 @@ def test_a_left_out_case_hands_the_reduced_catalogue_to_the_diagnosis(monkeypatc
     assert set(seen["candidates"]) == set(case.candidates)
 
 
+def test_a_case_whose_records_fail_is_that_cases_error_not_the_campaigns(monkeypatch):
+    def broken(case):
+        raise FloatingPointError("variant diverged")
+
+    monkeypatch.setattr(selfcheck, "case_records", broken)
+    case = selfcheck._case(11, "htls", "full", "stribeck_rational")
+    outcome = selfcheck.run_case(case)
+    assert outcome.verdict == "error" and outcome.message == "FloatingPointError: variant diverged"
+    assert outcome.parameters == {} and not outcome.correct
+
+
 def _outcome(kind, family, verdict, found=None, confidence="high", stressed=False, index=-1):
     variant = {"effect": f"{family}_v", "left_out": f"{family}_v", "none": None, "out_of_catalogue": "gremlin"}[kind]
     case = selfcheck.Case(f"htls/full/{variant}/{index}", "htls", "full", kind, variant,
@@ -225,6 +236,30 @@ def test_cache_resumes_without_diagnosing_again(monkeypatch, tmp_path):
     whole = selfcheck.self_check(**kw)
     assert len(calls) == n_first + (len(whole.outcomes) - len(first.outcomes))   # only the others ran
     assert [o.to_json() for o in whole.outcomes[::2]] == [o.to_json() for o in first.outcomes]
+
+
+def test_cache_diagnoses_again_a_case_that_raised(monkeypatch, tmp_path):
+    """A case whose diagnosis raised is kept in the cache (for inspection) but not read back: a
+    resumed run, after the cause is mended, diagnoses it again instead of scoring the old crash."""
+    calls = []
+    broken = {"on": True}
+
+    def flaky(case, settings=None):
+        calls.append(case.case_id)
+        outcome = _fake_run_case(case)
+        if broken["on"] and len(calls) == 1:
+            outcome = dataclasses.replace(outcome, verdict="error", message="RuntimeError: a crash")
+        return outcome
+
+    monkeypatch.setattr(selfcheck, "run_case", flaky)
+    kw = dict(seed=11, concepts=["htls"], sensors=["full"], none_per_set=2, kinds=["none"], cache=tmp_path / "c")
+    first = selfcheck.self_check(**kw)
+    assert [o.verdict for o in first.outcomes].count("error") == 1 and len(calls) == 2
+    assert len(list((tmp_path / "c").glob("*.json"))) == 2   # the crash's outcome is on disk
+    broken["on"] = False
+    again = selfcheck.self_check(**kw)
+    assert len(calls) == 3                                   # only the case that raised ran again
+    assert "error" not in [o.verdict for o in again.outcomes]
 
 
 def test_cache_does_not_read_back_outcomes_of_other_settings(monkeypatch, tmp_path):
