@@ -102,9 +102,9 @@ def _refit(run: _Diagnosis, reference: _Reference, name: str, effect, start: np.
     if start is None:
         grid = _start_grid(augmented, reference.fit.as_dict(), effect, names, run.strategy.start_multiples)
         best, objective, predicted = _best_point(problem, grid)
-        profiled, profiled_prediction, _ = _profiled_start(problem, grid[best], predicted[best], objective,
-                                                              augmented.parameters, names,
-                                                              run.strategy.start_multiples)
+        profiled, profiled_prediction = _profiled_start(problem, grid[best], predicted[best], objective,
+                                                           augmented.parameters, names,
+                                                           run.strategy.start_multiples)
         starts = [(profiled, profiled_prediction)]
         if any(_is_phase(n, augmented.parameters[n]) for n in names) and not np.array_equal(profiled, grid[best]):
             # an amplitude profiled at a grid phase settles where that phase is least wrong, and the

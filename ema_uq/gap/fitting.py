@@ -50,7 +50,7 @@ def _start_grid(augmented, base_values, effect, names: Sequence[str],
 
 
 def _profiled_start(problem: FitProblem, start: np.ndarray, prediction: np.ndarray, objective: float,
-                    params, names: Sequence[str], multiples: Sequence[float]) -> tuple[np.ndarray, np.ndarray, int]:
+                    params, names: Sequence[str], multiples: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
     """The grid's best start refined by one pass of fine 1-D profiles: each effect parameter in
     turn at ``PROFILE_POINTS`` geometric steps from its value over to its neighbouring grid
     points (÷ and × the grid's widest step), the others held, the best point kept. Why: the
@@ -59,12 +59,11 @@ def _profiled_start(problem: FitProblem, start: np.ndarray, prediction: np.ndarr
     play of the seed-2 self-check has its profile minimum at 2.2x the best grid point, and the
     refit from that point stopped at 1x.
     Phases stay at their grid value (they have their own grid over the turn).
-    Returns (start, its prediction, simulations run)."""
+    Returns (start, its prediction); the runs are counted by ``problem.predictions``."""
     ordered = np.sort(np.asarray(multiples, dtype=float))
     step = float(np.max(ordered[1:] / ordered[:-1])) if ordered.size > 1 else 1.0
     if step <= 1.0:
-        return start, prediction, 0
-    sims = 0
+        return start, prediction
     for name in names:
         i, parameter = params.index(name), params[name]
         if start[i] <= 0 or _is_phase(name, parameter):
@@ -74,10 +73,9 @@ def _profiled_start(problem: FitProblem, start: np.ndarray, prediction: np.ndarr
         trial = np.repeat(start[None], values.size, axis=0)
         trial[:, i] = values
         k, score, predicted = _best_point(problem, trial)
-        sims += values.size
         if score < objective:
             start, prediction, objective = trial[k], predicted[k], score
-    return start, prediction, sims
+    return start, prediction
 
 
 def _best_point(problem: FitProblem, thetas: np.ndarray) -> tuple[int, float, np.ndarray]:
