@@ -14,11 +14,12 @@ Usage: python benchmarks/workflow.py RESULTS [--log SNAKEMAKE.log] [--compare OT
 from __future__ import annotations
 
 import argparse
-import csv
 import re
 from collections import defaultdict
 from datetime import datetime
 from pathlib import Path
+
+from ema_uq.io import read_benchmark
 
 #: 15 min of wall time on 2 cores (issue 28, target 6)
 TARGET_CPU_MIN = 30.0
@@ -33,21 +34,14 @@ def job_costs(results: Path) -> list[dict]:
     CPU time [s] and peak resident memory [MB]. A file being written is skipped."""
     rows = []
     for path in sorted(results.rglob("benchmarks/*.tsv")):
-        with path.open(encoding="utf-8") as handle:
-            records = list(csv.DictReader(handle, delimiter="\t"))
-        if not records:
-            continue
-        record = records[-1]
-        try:
-            wall, rss = float(record["s"]), float(record["max_rss"])
-            cpu = float(record.get("cpu_time") or "nan")
-        except (KeyError, ValueError):
+        record = read_benchmark(path)
+        if record is None:
             continue
         study = path.parent.parent.name if path.parent.parent != results else "-"
         stage = _PART.sub("", path.stem)
         stage = next((rule for rule in _NAMED_BY_WILDCARD if stage.startswith(rule + "_")), stage)
         rows.append({"study": study, "stage": stage, "job": path.stem,
-                     "wall_s": wall, "cpu_s": cpu, "rss_mb": rss})
+                     "wall_s": record["s"], "cpu_s": record["cpu_s"], "rss_mb": record["max_rss"]})
     return rows
 
 

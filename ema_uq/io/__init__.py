@@ -50,11 +50,11 @@ from .cranfield import (CRANFIELD_BLOCK, CRANFIELD_CHANNELS, CRANFIELD_DIR_ENV, 
 from .emps import DEFAULT_EMPS_DIR, EMPS_CHANNELS, EMPS_DIR_ENV, EMPS_FILES, emps_data_dir, emps_files, read_emps
 from .files import FORMATS, TIME_UNIT, DataFileError, data_format, prepare_output, repository_root
 from .measurement import read_measurement, write_measurement
-from .results import _jsonable, read_json, write_json  # noqa: F401 - _jsonable: for tests of result files
+from .results import _jsonable, read_benchmark, read_json, write_json  # noqa: F401 - _jsonable: for tests of result files
 
 __all__ = [
     "DataFileError", "FORMATS", "data_format", "prepare_output", "write_measurement", "read_measurement",
-    "write_json", "read_json", "read_emps", "emps_data_dir", "emps_files", "EMPS_DIR_ENV",
+    "write_json", "read_json", "read_benchmark", "read_emps", "emps_data_dir", "emps_files", "EMPS_DIR_ENV",
     "read_cranfield", "cranfield_data_dir", "cranfield_file", "cranfield_record_sets", "CranfieldRecords",
     "CRANFIELD_DIR_ENV", "CRANFIELD_HEALTHY",
     "TIME_UNIT", "repository_root", "DEFAULT_EMPS_DIR", "EMPS_CHANNELS", "EMPS_FILES", "DEFAULT_CRANFIELD_DIR",

@@ -64,3 +64,26 @@ def read_json(path: str | os.PathLike) -> Any:
     except json.JSONDecodeError as exc:
         raise _fail(path, f"not valid JSON ({exc.msg} at line {exc.lineno}, column {exc.colno}); "
                           "repair the file or write it again") from None
+
+
+# --------------------------------------------------------------------------------------
+# Snakemake benchmark files
+# --------------------------------------------------------------------------------------
+def read_benchmark(path: str | os.PathLike) -> dict[str, float] | None:
+    """The last record of a Snakemake benchmark file (tab-separated, a header line): wall time
+    ``s`` [s], ``cpu_s`` [s] (NaN when this Snakemake version does not measure it) and
+    ``max_rss`` [MB]. None for a file still being written or of a format without them: a cost
+    table skips such a job rather than failing a report."""
+    lines = [line.split("\t") for line in Path(path).read_text(encoding="utf-8").splitlines() if line.strip()]
+    if len(lines) < 2:
+        return None
+    record = dict(zip(lines[0], lines[-1]))
+    try:
+        wall, rss = float(record["s"]), float(record["max_rss"])
+    except (KeyError, ValueError):
+        return None
+    try:
+        cpu = float(record.get("cpu_time", "nan"))
+    except ValueError:                  # "NA": not measured
+        cpu = math.nan
+    return {"s": wall, "cpu_s": cpu, "max_rss": rss}

@@ -14,6 +14,7 @@ from pathlib import Path
 from string import Template
 from typing import Callable
 
+from ..io import read_benchmark
 from ..models import get_model
 from ..provenance import file_sha256, settings_hash
 from ..rigs import rig_of
@@ -95,18 +96,11 @@ def _stage_cost_section(results: Path) -> str:
     """Wall time and peak memory of every workflow job, from Snakemake's benchmark files."""
     rows, total = [], 0.0
     for path in sorted((results / "benchmarks").glob("*.tsv")):
-        lines = [line.split("\t") for line in path.read_text().splitlines() if line.strip()]
-        if len(lines) < 2:
-            continue
-        record = dict(zip(lines[0], lines[-1]))
-        try:
-            seconds, rss = float(record["s"]), float(record["max_rss"])
-        except (KeyError, ValueError):
+        record = read_benchmark(path)
+        if record is None:
             continue  # a benchmark still being written, or from another Snakemake version
-        total += seconds
-        cpu = record.get("cpu_time", "")
-        rows.append([html.escape(path.stem), f"{seconds:.1f}", _fmt(float(cpu), 3) if cpu not in ("", "NA") else _fmt(None),
-                     f"{rss:.0f}"])
+        total += record["s"]
+        rows.append([html.escape(path.stem), f"{record['s']:.1f}", _fmt(record["cpu_s"], 3), f"{record['max_rss']:.0f}"])
     if not rows:
         return '<p class="muted">No benchmark files (the stages were not run by the workflow).</p>'
     rows.append(["<b>total</b>", f"<b>{total:.1f}</b>", "", ""])

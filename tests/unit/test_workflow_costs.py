@@ -47,3 +47,14 @@ def test_the_run_wall_time_is_read_from_the_snakemake_log(tmp_path):
     assert _costs().run_wall_minutes(log) == pytest.approx(75.5)
     log.write_text("nothing ran\n")
     assert _costs().run_wall_minutes(log) is None
+
+
+def test_a_benchmark_without_cpu_time_reads_as_nan_and_a_header_alone_as_none(tmp_path):
+    from ema_uq.io import read_benchmark
+
+    path = tmp_path / "job.tsv"
+    path.write_text(HEADER + "12.5\t0:00:12\t300\t0\t0\t0\t0\t0\t50\tNA\n")
+    record = read_benchmark(path)
+    assert record["s"] == 12.5 and record["max_rss"] == 300 and record["cpu_s"] != record["cpu_s"]
+    path.write_text(HEADER)
+    assert read_benchmark(path) is None
