@@ -174,7 +174,12 @@ class Effect:
     (:attr:`ema_uq.models.base.Model.rk4_step`), since that step was verified on the nominal
     dynamics only. ``nests``: forms of the same family this form contains exactly at a value of its
     extra parameters (e.g. ``stribeck_directional`` at zero asymmetry is ``stribeck`` bit for bit):
-    a diagnosis that offers a form can leave out the forms it nests.
+    a diagnosis that offers a form can leave out the forms it nests. ``reduces_to``: the forms
+    this one computes exactly at some values of its parameters, each as {own parameter: the
+    other form's parameter whose value it takes, or a fixed number} (e.g. ``torque_ripple_harmonics``
+    at zero harmonic ratios is ``torque_ripple`` with the fundamental's amplitude and phase): a
+    fit of this form can start where the other form's fit ended (method version 8 of the gap
+    diagnosis). Unlike ``nests`` it does not let a diagnosis leave the other form out.
     """
 
     name: str
@@ -192,6 +197,7 @@ class Effect:
     combines: tuple[str, ...] = ()
     fast_dynamics: bool = False
     nests: tuple[str, ...] = ()
+    reduces_to: Mapping[str, Mapping[str, str | float]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if not self.family:  # a form of its own: the family is the effect itself
@@ -213,6 +219,36 @@ class Effect:
             raise EffectError(f"effect {self.name}: unknown signature regime(s) {', '.join(unknown)}; "
                               f"use {', '.join(SIGNATURES)}")
         self._check_kernel_facts(names)
+        self._check_reductions(names)
+
+    def _check_reductions(self, names: list[str]) -> None:
+        """Each reduction gives every parameter of this form a value: a parameter of the other
+        form (by its full name) or a number inside this parameter's bounds."""
+        for other, mapping in self.reduces_to.items():
+            if sorted(mapping) != sorted(names):
+                raise EffectError(f"effect {self.name}: its reduction to {other} must map each of its parameters "
+                                  f"({', '.join(names)}), got {', '.join(mapping) or 'none'}")
+            for key, value in mapping.items():
+                if isinstance(value, str):
+                    if not value.startswith(other + "_"):
+                        raise EffectError(f"effect {self.name}: reduction to {other} maps {key} to {value!r}, "
+                                          f"which is not a parameter of {other}")
+                    continue
+                p = self.parameters[names.index(key)]
+                if not p.lower <= float(value) <= p.upper:
+                    raise EffectError(f"effect {self.name}: reduction to {other} sets {key} = {value:g} outside "
+                                      f"[{p.lower:g}, {p.upper:g}]")
+
+    def reduced_values(self, other: str, values: Mapping[str, float]) -> dict[str, float]:
+        """This form's parameter values at which it computes ``other`` with ``values`` (the
+        other form's parameters by full name): :attr:`reduces_to`."""
+        try:
+            mapping = self.reduces_to[other]
+        except KeyError:
+            raise EffectError(f"effect {self.name} does not reduce to {other}; it reduces to "
+                              f"{', '.join(self.reduces_to) or 'no other form'}") from None
+        return {key: float(values[value]) if isinstance(value, str) else float(value)
+                for key, value in mapping.items()}
 
     def _check_kernel_facts(self, names: list[str]) -> None:
         """Every extra state has an error scale, ``magnitude`` is a parameter that is zero at
@@ -463,7 +499,11 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (
              "torque_ripple_harmonics_ratio3": 0.0, "torque_ripple_harmonics_phase3": 0.0},
         signature=("periodic", "low_speed"), magnitude="torque_ripple_harmonics_amplitude",
         constants={"htls": {"periods": 6.0}, "lths": {"periods": 4.0}},  # fundamental periods per motor revolution
-        family="torque_ripple", fast_dynamics=True),
+        family="torque_ripple", fast_dynamics=True,
+        reduces_to={"torque_ripple": {"torque_ripple_harmonics_amplitude": "torque_ripple_amplitude",
+                                      "torque_ripple_harmonics_phase": "torque_ripple_phase",
+                                      "torque_ripple_harmonics_ratio2": 0.0, "torque_ripple_harmonics_phase2": 0.0,
+                                      "torque_ripple_harmonics_ratio3": 0.0, "torque_ripple_harmonics_phase3": 0.0}}),
     Effect(
         "ujoint_stations",
         "exact U-joint speed factor of eq. 8 with a ripple scale and a yoke phase per station: two "
@@ -477,7 +517,11 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (
         off={"ujoint_stations_scale1": 0.0, "ujoint_stations_phase1": 0.0,
              "ujoint_stations_scale2": 0.0, "ujoint_stations_phase2": 0.0},
         signature=("periodic", "high_load"), magnitude="ujoint_stations_scale1",
-        family="ujoint_kinematics"),
+        family="ujoint_kinematics",
+        reduces_to={"ujoint_kinematics": {"ujoint_stations_scale1": "ujoint_kinematics_scale",
+                                          "ujoint_stations_phase1": "ujoint_kinematics_phase",
+                                          "ujoint_stations_scale2": "ujoint_kinematics_scale",
+                                          "ujoint_stations_phase2": "ujoint_kinematics_phase"}}),
     # forms that give a family the freedom its mechanism has on a drive with a one-sided load or a
     # filtering sensor (method version 4 of the gap diagnosis; each nests the family's first form)
     Effect(
@@ -494,7 +538,10 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (
         off={"stribeck_directional_ratio": 0.0, "stribeck_directional_asymmetry": 0.0,
              "stribeck_directional_speed": 1.0},
         signature=("low_speed", "reversal", "direction"), magnitude="stribeck_directional_ratio",
-        family="stribeck", nests=("stribeck",)),
+        family="stribeck", nests=("stribeck",),
+        reduces_to={"stribeck": {"stribeck_directional_ratio": "stribeck_ratio",
+                                 "stribeck_directional_asymmetry": 0.0,
+                                 "stribeck_directional_speed": "stribeck_speed"}}),
     Effect(
         "load_friction_directional",
         "ball-screw Coulomb friction growing with the carried load, more against a load that opposes the "
@@ -505,7 +552,9 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (
         start={"load_friction_directional_mu": 2.5e-4, "load_friction_directional_asymmetry": 0.0},
         off={"load_friction_directional_mu": 0.0, "load_friction_directional_asymmetry": 0.0},
         signature=("high_load", "direction"), magnitude="load_friction_directional_mu",
-        family="load_dependent_friction", nests=("load_dependent_friction",)),
+        family="load_dependent_friction", nests=("load_dependent_friction",),
+        reduces_to={"load_dependent_friction": {"load_friction_directional_mu": "load_dependent_friction_mu",
+                                                "load_friction_directional_asymmetry": 0.0}}),
     Effect(
         "sensor_delay_dispersed",
         "every measured channel lags the true signal by τ in all: a pure delay (1 - d) τ and a first-order "
@@ -516,7 +565,9 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (
         start={"sensor_delay_dispersed_tau": 0.001, "sensor_delay_dispersed_dispersion": 0.5},
         off={"sensor_delay_dispersed_tau": 0.0, "sensor_delay_dispersed_dispersion": 0.5},
         signature=("delay", "high_acceleration"), magnitude="sensor_delay_dispersed_tau",
-        postprocess=delay_dispersed_outputs, family="sensor_delay", nests=("sensor_delay",)),
+        postprocess=delay_dispersed_outputs, family="sensor_delay", nests=("sensor_delay",),
+        reduces_to={"sensor_delay": {"sensor_delay_dispersed_tau": "sensor_delay_tau",
+                                     "sensor_delay_dispersed_dispersion": 0.0}}),
     # forms whose magnitude follows the operating point it physically depends on (method version 5
     # of the gap diagnosis; each nests the family's first form)
     Effect(
@@ -534,7 +585,10 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (
              "torque_ripple_loaded_share": 0.0},
         signature=("periodic", "low_speed", "high_load"), magnitude="torque_ripple_loaded_amplitude",
         constants={"htls": {"periods": 6.0}, "lths": {"periods": 4.0}},  # ripple periods per motor revolution
-        family="torque_ripple", fast_dynamics=True, nests=("torque_ripple",)),
+        family="torque_ripple", fast_dynamics=True, nests=("torque_ripple",),
+        reduces_to={"torque_ripple": {"torque_ripple_loaded_amplitude": "torque_ripple_amplitude",
+                                      "torque_ripple_loaded_phase": "torque_ripple_phase",
+                                      "torque_ripple_loaded_share": 0.0}}),
     Effect(
         "ujoint_stroke",
         "exact U-joint speed factor of eq. 8 with a ripple scale that changes along the stroke (a joint "
@@ -548,7 +602,10 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (
         signature=("periodic", "high_load"), magnitude="ujoint_stroke_scale",
         # the carriage travel of the reference runs' 0-35° deflections: 0 to 0.26 m on both concepts [m]
         constants={"htls": {"mid": 0.13, "half": 0.13}, "lths": {"mid": 0.13, "half": 0.13}},
-        family="ujoint_kinematics", nests=("ujoint_kinematics",)),
+        family="ujoint_kinematics", nests=("ujoint_kinematics",),
+        reduces_to={"ujoint_kinematics": {"ujoint_stroke_scale": "ujoint_kinematics_scale",
+                                          "ujoint_stroke_phase": "ujoint_kinematics_phase",
+                                          "ujoint_stroke_slope": 0.0}}),
     Effect(
         "shaft_compliance_loaded",
         "torsional spring and damper between motor and drive train whose stiffness grows with the torque "
@@ -568,7 +625,11 @@ CATALOGUE: dict[str, Effect] = {e.name: e for e in (
         # reference runs (HT/LS 36 N m, LT/HS 2.3 N m at the motor)
         constants={"htls": {"mode_omega_max": 1.0 / 5e-4, "torque_ref": 30.0},
                    "lths": {"mode_omega_max": 1.0 / 2e-4, "torque_ref": 2.0}},
-        family="shaft_compliance", fast_dynamics=True, nests=("shaft_compliance",)),
+        family="shaft_compliance", fast_dynamics=True, nests=("shaft_compliance",),
+        reduces_to={"shaft_compliance": {"shaft_compliance_loaded_period": "shaft_compliance_period",
+                                         "shaft_compliance_loaded_zeta": "shaft_compliance_zeta",
+                                         "shaft_compliance_loaded_load_fraction": "shaft_compliance_load_fraction",
+                                         "shaft_compliance_loaded_hardening": 0.0}}),
 )}
 
 #: Effects that cannot share one model: each group models the same coupling (its twist states), or

@@ -11,6 +11,7 @@ mode of an independent linear model); batched == single; ``ema-uq simulate --eff
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 import math
 import subprocess
 import sys
@@ -414,6 +415,48 @@ def test_each_form_declares_the_forms_it_nests():
     assert declared == {(parent, form) for parent, _, form, _, _ in NESTED}
     for parent, form in declared:
         assert CATALOGUE[parent].family == CATALOGUE[form].family
+
+
+REDUCING = [(form, other) for form, effect in CATALOGUE.items() for other in effect.reduces_to]
+
+
+def test_the_reductions_cover_every_nesting_and_the_forms_that_nest_without_being_declared():
+    """Every declared ``nests`` is a reduction too (a fit of the form can start from the nested
+    form's), and the forms a diagnosis must not leave out beside theirs reduce as well."""
+    assert {(parent, form) for parent, _, form, _, _ in NESTED} <= {(other, form) for form, other in REDUCING}
+    assert {("torque_ripple", "torque_ripple_harmonics"), ("ujoint_kinematics", "ujoint_stations")} <= \
+        {(other, form) for form, other in REDUCING}
+
+
+@pytest.mark.parametrize("concept", ["htls", "lths"])
+@pytest.mark.parametrize("form, other", REDUCING)
+def test_a_form_at_its_reduced_values_computes_the_other_form_bit_for_bit(concept, form, other, experiment):
+    """``Effect.reduced_values``: at them the form's outputs are the other form's, for values of
+    the other form drawn away from its start (so that a map onto the wrong parameter shows)."""
+    first = get_model(concept).with_effects([other])
+    values = {}
+    for n in (n for n in first.parameters.names if n.startswith(other + "_")):
+        p = first.parameters[n]
+        values[n] = float(np.clip(1.37 * p.nominal if p.nominal else 0.7, p.lower, p.upper))
+    first = get_model(concept).with_effects([other], values)
+    reduced = CATALOGUE[form].reduced_values(other, values)
+    spanning = get_model(concept).with_effects([form], reduced)
+    np.testing.assert_array_equal(runs(spanning, spanning.parameters.nominal, experiment),
+                                  runs(first, first.parameters.nominal, experiment))
+
+
+def test_a_reduction_must_map_every_parameter_inside_its_bounds():
+    effect = CATALOGUE["stribeck_directional"]
+    with pytest.raises(EffectError, match="must map each of its parameters"):
+        replace(effect, reduces_to={"stribeck": {"stribeck_directional_ratio": "stribeck_ratio"}})
+    mapping = dict(effect.reduces_to["stribeck"], stribeck_directional_asymmetry=2.0)
+    with pytest.raises(EffectError, match="outside"):
+        replace(effect, reduces_to={"stribeck": mapping})
+    mapping = dict(effect.reduces_to["stribeck"], stribeck_directional_speed="sensor_delay_tau")
+    with pytest.raises(EffectError, match="not a parameter of stribeck"):
+        replace(effect, reduces_to={"stribeck": mapping})
+    with pytest.raises(EffectError, match="does not reduce to backlash"):
+        effect.reduced_values("backlash", {})
 
 
 def test_loaded_ripple_stroke_ujoint_and_stiffening_formulas():
