@@ -44,7 +44,7 @@ version 1, no ``model_form_allowance`` there) runs without it.
 
 Usage: python benchmarks/gap.py [--concept htls|lths|both] [--sensors full realistic] [--jobs N]
                                 [--quick] [--none-per-set N] [--kinds ...] [--none-from K] [--seed N]
-                                [--peer] [--out JSON] [--cache DIR] [--method-version 1|2|3|4|5|6]
+                                [--peer] [--out JSON] [--cache DIR] [--method-version 1-8]
        python benchmarks/gap.py --protocol benchmarks/gap_protocol.yaml --block development|evaluation
                                 [--jobs N] [--chunk I/N] [--results DIR]
        python benchmarks/gap.py --protocol benchmarks/gap_protocol.yaml --freeze [--new-evaluation]
@@ -178,11 +178,9 @@ def _frozen_method(settings: DiagnosisSettings | None = None) -> dict:
         strategies[concept] = {"name": strategy.name, "thresholds": plain(strategy.thresholds),
                                # the concept's knobs under the frozen method's switches (what a block runs)
                                "settings": plain(dataclasses.replace(
-                                   strategy.settings, converged_step=settings.converged_step,
-                                   spanning_forms=settings.spanning_forms,
-                                   operating_point_forms=settings.operating_point_forms,
-                                   nested_forms=settings.nested_forms, decision_fits=settings.decision_fits,
-                                   decision_stop=settings.decision_stop)),
+                                   strategy.settings, **{key: getattr(settings, key)
+                                                         for key in method_switches(DEFAULT_METHOD_VERSION)
+                                                         if key != "model_form_allowance"})),
                                "start_multiples": [float(m) for m in strategy.start_multiples],
                                "where_source": strategy.where_source,
                                "metric": type(strategy.metric).__name__,
@@ -534,6 +532,7 @@ def protocol_settings(protocol: dict) -> DiagnosisSettings:
     frozen.setdefault("nested_forms", True)
     frozen.setdefault("decision_fits", False)
     frozen.setdefault("decision_stop", "extrapolated")
+    frozen.setdefault("nested_starts", False)
     return DiagnosisSettings(**frozen)
 
 

@@ -79,8 +79,24 @@ def _catalogue(model, settings=None) -> dict[str, Any]:
     return catalogue
 
 
+def _nested_points(augmented, reference: _Reference, effect, nested: dict) -> tuple[np.ndarray, list[str]]:
+    """Start points where the candidate's form computes a model already fitted
+    (``DiagnosisSettings.nested_starts``): the reference model (every effect parameter at
+    ``Effect.off``, the base at the reference fit) and each form of ``nested`` ({form it
+    reduces to: that form's refit}) at its fit. Returns (points (n, n_params), their origins)."""
+    params = augmented.parameters
+    base = {k: v for k, v in reference.fit.as_dict().items() if k in params}
+    points, origins = [params.vector({**base, **dict(effect.off)})], ["the reference model"]
+    for other, (_, other_names, other_fit, _) in nested.items():
+        values = other_fit.as_dict()
+        carried = {k: v for k, v in values.items() if k in params and k not in other_names}
+        points.append(params.vector({**carried, **effect.reduced_values(other, values)}))
+        origins.append(f"{other}'s fit")
+    return np.array(points), origins
+
+
 def _refit(run: _Diagnosis, reference: _Reference, name: str, effect, start: np.ndarray | None = None,
-           screening: bool = True):
+           screening: bool = True, nested: dict | None = None):
     """ML refit of the reference model augmented by one effect.
 
     Screening (default): start from the best point of the start grid refined by
@@ -89,7 +105,9 @@ def _refit(run: _Diagnosis, reference: _Reference, name: str, effect, start: np.
     ones, Gauss-Newton capped at ``candidate_max_iterations`` (every parameter free when
     ``screen_base_parameters`` is None).
     Otherwise (the leaders' final refit): every parameter free from ``start``, capped at
-    ``final_max_iterations``. Parameters the channels cannot determine, and with ``hold_base``
+    ``final_max_iterations``. With ``nested_starts`` the start search also tries
+    :func:`_nested_points` (``nested``: the refits of the forms this one reduces to).
+    Parameters the channels cannot determine, and with ``hold_base``
     every base parameter, stay held. Returns (augmented model, effect parameter names,
     FitResult, V of the estimate with every free parameter counted).
     """
@@ -101,7 +119,13 @@ def _refit(run: _Diagnosis, reference: _Reference, name: str, effect, start: np.
     starts = [(start, None)]
     if start is None:
         grid = _start_grid(augmented, reference.fit.as_dict(), effect, names, run.strategy.start_multiples)
+        n_grid = grid.shape[0]
+        if settings.nested_starts:
+            points, origins = _nested_points(augmented, reference, effect, nested or {})
+            grid = np.vstack([grid, points])
         best, objective, predicted = _best_point(problem, grid)
+        if best >= n_grid:
+            run.say(f"  {name}: starts where it computes {origins[best - n_grid]} (V below the start grid's best)")
         profiled, profiled_prediction = _profiled_start(problem, grid[best], predicted[best], objective,
                                                            augmented.parameters, names,
                                                            run.strategy.start_multiples)
@@ -298,11 +322,36 @@ def _ranked(rows: list[CandidateScore]) -> list[CandidateScore]:
     return sorted(rows, key=lambda c: -c.score if np.isfinite(c.score) else np.inf)
 
 
+def _fit_order(pool: dict[str, Any], nested_starts: bool) -> list[str]:
+    """The order in which a round fits its candidates: the catalogue's, except that with
+    ``nested_starts`` a form comes after the offered forms it reduces to (``Effect.reduces_to``),
+    so that its start search can try their fits."""
+    order = list(pool)
+    if not nested_starts:
+        return order
+    placed: list[str] = []
+    while order:
+        ready = [n for n in order if not any(o in order and o != n for o in getattr(pool[n], "reduces_to", {}))]
+        if not ready:           # reductions in a circle: no form waits for another
+            ready = order[:]
+        placed += ready
+        order = [n for n in order if n not in ready]
+    return placed
+
+
 def _candidate_round(run: _Diagnosis, reference: _Reference, pool: dict[str, Any], loc):
     """Steps 3-4: screening refit of every candidate in ``pool``, then the leaders' final
     refits with every parameter free. Returns (ranking, {name: (refit, held-out figures)})."""
     fits: dict[str, Any] = {}
-    ranking = _ranked([_candidate(run, reference, name, effect, loc, fits) for name, effect in pool.items()])
+    rows = {}
+    for name in _fit_order(pool, run.settings.nested_starts):
+        effect = pool[name]
+        if run.settings.nested_starts:
+            nested = {other: fits[other][0] for other in getattr(effect, "reduces_to", {}) if other in fits}
+            rows[name] = _candidate(run, reference, name, effect, loc, fits, nested=nested)
+        else:
+            rows[name] = _candidate(run, reference, name, effect, loc, fits)
+    ranking = _ranked([rows[name] for name in pool])      # ties keep the catalogue's order
     if run.settings.screen_base_parameters is None:
         return ranking, fits
     leaders = [c for c in ranking[:run.settings.final_candidates] if np.isfinite(c.score)]

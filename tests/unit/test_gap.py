@@ -348,6 +348,80 @@ def test_an_effect_with_a_phase_is_refitted_from_the_grid_point_and_the_profiled
     assert objective == min(v for _, v in seen)
 
 
+def test_nested_starts_begin_a_form_where_it_computes_the_models_it_contains(monkeypatch):
+    """Method version 8: a start grid that misses (here made to, one point far off) is
+    overruled by the point where the form computes the model it is added to or a form it
+    reduces to, whichever has the lower V; from there the fit can be no worse than that model's.
+    Without ``nested_starts`` the refit starts on the grid."""
+    from dataclasses import replace
+
+    from ema_uq.gap import attribute as A
+    from ema_uq.gap import candidates
+
+    base = get_model("htls")
+    model = base.with_effects(["sensor_delay"])
+    theta = model.parameters.vector({"sensor_delay_tau": 0.02})
+    est = synthesize(model, deploy_retract().slice(0, 1500), theta, noise=0.02, seed=81)
+    val = synthesize(model, validation().slice(0, 1500), theta, noise=0.02, seed=82)
+    strategy = A.strategy_for(base)
+    settings = replace(strategy.settings, nested_starts=True)
+    run = A._Diagnosis(strategy, settings, A._split([est], [val], strategy, settings), base,
+                       A._catalogue(base, settings), lambda line: None, seed=81)
+    reference = A._fit_nominal(run)[0]
+    catalogue = base.effect_catalogue
+    delay = A._refit(run, reference, "sensor_delay", catalogue["sensor_delay"])
+    real_grid, real_fit, starts = candidates._start_grid, candidates._screened_fit, []
+
+    def far_grid(augmented, base_values, effect, names, multiples):
+        grid = real_grid(augmented, base_values, effect, names, multiples)
+        far = grid[:1].copy()
+        far[0, [augmented.parameters.index(n) for n in names]] = [0.4, 0.9]     # tau 0.4 s, mostly a lag
+        return far
+
+    def recording(run_, problem, augmented, names, start, prediction, screening):
+        starts.append(dict(zip(augmented.parameters.names, start)))
+        return real_fit(run_, problem, augmented, names, start, prediction, screening)
+
+    monkeypatch.setattr(candidates, "_start_grid", far_grid)
+    monkeypatch.setattr(candidates, "_screened_fit", recording)
+    dispersed = catalogue["sensor_delay_dispersed"]
+    _, _, _, objective = A._refit(run, reference, "sensor_delay_dispersed", dispersed, nested={"sensor_delay": delay})
+    assert starts[0]["sensor_delay_dispersed_tau"] == pytest.approx(delay[2].value("sensor_delay_tau"), rel=1e-12)
+    assert starts[0]["sensor_delay_dispersed_dispersion"] == 0.0
+    assert objective <= delay[3] + 1e-9 * abs(delay[3])
+
+    starts.clear()      # nothing fitted to reduce to: the reference model itself beats the far point
+    A._refit(run, reference, "sensor_delay_dispersed", dispersed, nested={})
+    assert starts[0]["sensor_delay_dispersed_tau"] == 0.0
+
+    starts.clear()
+    run.settings = replace(settings, nested_starts=False)
+    A._refit(run, reference, "sensor_delay_dispersed", dispersed, nested={"sensor_delay": delay})
+    assert starts[0]["sensor_delay_dispersed_tau"] > 0.1       # the far point, profiled
+
+
+def test_a_form_is_fitted_after_the_forms_it_reduces_to_only_with_nested_starts():
+    from ema_uq.gap.candidates import _fit_order
+
+    catalogue = get_model("htls").effect_catalogue
+    pool = {n: catalogue[n] for n in ("stribeck_directional", "backlash", "stribeck", "torque_ripple_harmonics",
+                                      "torque_ripple")}
+    assert _fit_order(pool, False) == list(pool)
+    order = _fit_order(pool, True)
+    assert sorted(order) == sorted(pool)
+    assert order.index("stribeck") < order.index("stribeck_directional")
+    assert order.index("torque_ripple") < order.index("torque_ripple_harmonics")
+
+
+def test_method_version_8_is_version_4_with_nested_starts_only():
+    from ema_uq.gap.strategy import DiagnosisSettings, method_switches, method_version_of
+
+    assert method_switches(8) == {**method_switches(4), "nested_starts": True}
+    assert all(method_switches(v)["nested_starts"] is False for v in range(1, 8))
+    assert method_version_of(DiagnosisSettings(**method_switches(8))) == 8
+    assert method_version_of(DiagnosisSettings()) == 4
+
+
 # --------------------------------------------------------------------------------------
 # end-to-end diagnoses (HT/LS, restricted candidates)
 # --------------------------------------------------------------------------------------

@@ -17,3 +17,17 @@ def test_malformed_yaml_names_line_and_column(tmp_path, capsys, text, where):
     assert cli.main(["check-study", str(path)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and where in err
+
+
+def test_the_study_schema_accepts_exactly_the_gap_method_versions():
+    """``gap.method_version``: the schema's choices are the package's versions (a version added
+    to the package and not to the schema could not be chosen in a study)."""
+    import json
+    from pathlib import Path
+
+    import ema_uq
+    from ema_uq.gap.strategy import METHOD_VERSIONS
+
+    schema = json.loads((Path(ema_uq.__file__).parent / "schema" / "study.schema.json").read_text())
+    choices = schema["properties"]["gap"]["properties"]["method_version"]["enum"]
+    assert sorted(v for v in choices if v is not None) == sorted(METHOD_VERSIONS)
