@@ -80,7 +80,7 @@ def _catalogue(model, settings=None) -> dict[str, Any]:
 
 
 def _nested_points(augmented, reference: _Reference, effect, nested: dict) -> tuple[np.ndarray, list[str]]:
-    """Start points where the candidate's form computes a model already fitted
+    """Points where the candidate's form computes a model already fitted
     (``DiagnosisSettings.nested_starts``): the reference model (every effect parameter at
     ``Effect.off``, the base at the reference fit) and each form of ``nested`` ({form it
     reduces to: that form's refit}) at its fit. Returns (points (n, n_params), their origins)."""
@@ -105,8 +105,9 @@ def _refit(run: _Diagnosis, reference: _Reference, name: str, effect, start: np.
     ones, Gauss-Newton capped at ``candidate_max_iterations`` (every parameter free when
     ``screen_base_parameters`` is None).
     Otherwise (the leaders' final refit): every parameter free from ``start``, capped at
-    ``final_max_iterations``. With ``nested_starts`` the start search also tries
-    :func:`_nested_points` (``nested``: the refits of the forms this one reduces to).
+    ``final_max_iterations``. With ``nested_starts`` a screening fit that ends below a model the
+    form contains (:func:`_nested_points`; ``nested``: the refits of the forms this one reduces
+    to) is refitted from that model's point, the better fit kept.
     Parameters the channels cannot determine, and with ``hold_base``
     every base parameter, stay held. Returns (augmented model, effect parameter names,
     FitResult, V of the estimate with every free parameter counted).
@@ -119,13 +120,7 @@ def _refit(run: _Diagnosis, reference: _Reference, name: str, effect, start: np.
     starts = [(start, None)]
     if start is None:
         grid = _start_grid(augmented, reference.fit.as_dict(), effect, names, run.strategy.start_multiples)
-        n_grid = grid.shape[0]
-        if settings.nested_starts:
-            points, origins = _nested_points(augmented, reference, effect, nested or {})
-            grid = np.vstack([grid, points])
         best, objective, predicted = _best_point(problem, grid)
-        if best >= n_grid:
-            run.say(f"  {name}: starts where it computes {origins[best - n_grid]} (V below the start grid's best)")
         profiled, profiled_prediction = _profiled_start(problem, grid[best], predicted[best], objective,
                                                            augmented.parameters, names,
                                                            run.strategy.start_multiples)
@@ -138,6 +133,13 @@ def _refit(run: _Diagnosis, reference: _Reference, name: str, effect, start: np.
             starts.append((grid[best], predicted[best]))
     fits = [_screened_fit(run, problem, augmented, names, s, p, screening) for s, p in starts]
     objectives = [_full_objective(problem, f.estimate, f.log_det_r) for f in fits]
+    if start is None and settings.nested_starts:
+        points, origins = _nested_points(augmented, reference, effect, nested or {})
+        j, contained, predicted_points = _best_point(problem, points)
+        if np.isfinite(contained) and not np.nanmin(np.asarray(objectives + [np.inf])) <= contained:
+            run.say(f"  {name}: its fit ended below {origins[j]}, which it contains; refitted from there")
+            fits.append(_screened_fit(run, problem, augmented, names, points[j], predicted_points[j], screening))
+            objectives.append(_full_objective(problem, fits[-1].estimate, fits[-1].log_det_r))
     k = _finite_argmin(objectives)
     fit = fits[k]
     # every run of the refit went through this problem's memo (the narrower refits share it):

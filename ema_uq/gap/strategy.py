@@ -75,14 +75,17 @@ class DiagnosisSettings:
     version 7: the decrease the full Gauss-Newton step promises at the current iterate, checked
     before each step; the history of decreases is no bound, a plateau can come before a large
     decrease);
-    ``nested_starts``: a candidate's start search also tries the points where its form computes
-    the reference model (every effect parameter at ``Effect.off``) and, for a form that reduces
-    to another form fitted in the same round (``Effect.reduces_to``), that form's fit; the
-    start is the point of lowest V (method version 8). Why: each form contains the model it is
-    added to, and a spanning form contains its family's first form, so its ML fit can be no
-    worse than theirs; a start grid without those points let Gauss-Newton stop in a dip of a
-    ragged objective far below them (plays ending 1400-12 000 in 2V under the nominal they
-    contain, a three-harmonic ripple 630 under its fundamental alone).
+    ``nested_starts``: a candidate's screening fit that ends with a lower likelihood than a model
+    its form contains, the model it is added to (every effect parameter at ``Effect.off``) or,
+    for a form that reduces to another form fitted in the same round (``Effect.reduces_to``),
+    that form's fit, is refitted from that model's point and the better fit kept (method
+    version 8). Why: the form contains those models, so its ML fit can be no worse than theirs;
+    the start grid has no point at them, and Gauss-Newton stopped in a dip of a ragged objective
+    far below them (plays ending 1400-12 000 in 2V under the nominal they contain, a
+    three-harmonic ripple 630 under its fundamental alone). Only such a fit is refitted: a start
+    at the nested point itself leaves the parameters that vanish there (a harmonic's phase at
+    zero ratio, a torsional mode's damping at zero period) undetermined, and fits from it stayed
+    in the nested model where the grid's fit had found the form (development, block 5209).
     """
 
     holdout_fraction: float = 0.3
@@ -132,9 +135,9 @@ METHOD_VERSIONS = {1: "the nominal model's kinematics and command taken as exact
                    7: "6 with the decrease still to come judged by what the next full Gauss-Newton step promises "
                       "at the current iterate, not extrapolated from past decreases (version 6 stopped a nominal "
                       "fit on a plateau, 1798 in 2V short of its optimum)",
-                   8: "4 with nested starts: each candidate's start search also tries the point where its form "
-                      "computes the reference model and, for a form that reduces to another fitted form, that "
-                      "form's fit (a form can fit no worse than the forms it contains)"}
+                   8: "4 with nested starts: a candidate fit that ends below a model its form contains (the "
+                      "reference model, or a form it reduces to, as fitted) is refitted from that model's point, "
+                      "the better fit kept (a form can fit no worse than the models it contains)"}
 
 #: the version ``DiagnosisSettings()`` gives: 4 since its evaluation block 5205 met its rule (version 2 before)
 DEFAULT_METHOD_VERSION = 4

@@ -348,11 +348,12 @@ def test_an_effect_with_a_phase_is_refitted_from_the_grid_point_and_the_profiled
     assert objective == min(v for _, v in seen)
 
 
-def test_nested_starts_begin_a_form_where_it_computes_the_models_it_contains(monkeypatch):
-    """Method version 8: a start grid that misses (here made to, one point far off) is
-    overruled by the point where the form computes the model it is added to or a form it
-    reduces to, whichever has the lower V; from there the fit can be no worse than that model's.
-    Without ``nested_starts`` the refit starts on the grid."""
+def test_a_fit_that_ends_below_a_model_it_contains_is_refitted_from_that_model(monkeypatch):
+    """Method version 8: a screening fit from a start grid that misses (here made to: one point
+    far off) ends below the form it reduces to, and is refitted from where the form computes
+    that form's fit; the better fit is kept, so it is no worse than the model it contains. A fit
+    above every model it contains is not refitted. Without
+    ``nested_starts`` the fit from the grid stands."""
     from dataclasses import replace
 
     from ema_uq.gap import attribute as A
@@ -379,25 +380,29 @@ def test_nested_starts_begin_a_form_where_it_computes_the_models_it_contains(mon
         return far
 
     def recording(run_, problem, augmented, names, start, prediction, screening):
-        starts.append(dict(zip(augmented.parameters.names, start)))
-        return real_fit(run_, problem, augmented, names, start, prediction, screening)
+        fit = real_fit(run_, problem, augmented, names, start, prediction, screening)
+        starts.append((dict(zip(augmented.parameters.names, start)),
+                       A._full_objective(problem, fit.estimate, fit.log_det_r)))
+        return fit
 
     monkeypatch.setattr(candidates, "_start_grid", far_grid)
     monkeypatch.setattr(candidates, "_screened_fit", recording)
     dispersed = catalogue["sensor_delay_dispersed"]
     _, _, _, objective = A._refit(run, reference, "sensor_delay_dispersed", dispersed, nested={"sensor_delay": delay})
-    assert starts[0]["sensor_delay_dispersed_tau"] == pytest.approx(delay[2].value("sensor_delay_tau"), rel=1e-12)
-    assert starts[0]["sensor_delay_dispersed_dispersion"] == 0.0
-    assert objective <= delay[3] + 1e-9 * abs(delay[3])
+    assert len(starts) == 2 and starts[0][1] > delay[3]           # the grid's fit ended below sensor_delay's
+    assert starts[1][0]["sensor_delay_dispersed_tau"] == pytest.approx(delay[2].value("sensor_delay_tau"), rel=1e-12)
+    assert starts[1][0]["sensor_delay_dispersed_dispersion"] == 0.0
+    assert objective == starts[1][1] <= delay[3] + 1e-9 * abs(delay[3])
 
-    starts.clear()      # nothing fitted to reduce to: the reference model itself beats the far point
+    starts.clear()      # the same fit does not end below the model it is added to: not refitted
     A._refit(run, reference, "sensor_delay_dispersed", dispersed, nested={})
-    assert starts[0]["sensor_delay_dispersed_tau"] == 0.0
+    assert len(starts) == 1 and starts[0][1] < reference.objective
 
     starts.clear()
     run.settings = replace(settings, nested_starts=False)
-    A._refit(run, reference, "sensor_delay_dispersed", dispersed, nested={"sensor_delay": delay})
-    assert starts[0]["sensor_delay_dispersed_tau"] > 0.1       # the far point, profiled
+    _, _, _, objective = A._refit(run, reference, "sensor_delay_dispersed", dispersed,
+                                  nested={"sensor_delay": delay})
+    assert len(starts) == 1 and objective > delay[3]
 
 
 def test_a_form_is_fitted_after_the_forms_it_reduces_to_only_with_nested_starts():
