@@ -327,7 +327,7 @@ def _ranked(rows: list[CandidateScore]) -> list[CandidateScore]:
 def _fit_order(pool: dict[str, Any], nested_starts: bool) -> list[str]:
     """The order in which a round fits its candidates: the catalogue's, except that with
     ``nested_starts`` a form comes after the offered forms it reduces to (``Effect.reduces_to``),
-    so that its start search can try their fits."""
+    so that a fit of it that ends below theirs can be refitted from their fits."""
     order = list(pool)
     if not nested_starts:
         return order
@@ -348,11 +348,8 @@ def _candidate_round(run: _Diagnosis, reference: _Reference, pool: dict[str, Any
     rows = {}
     for name in _fit_order(pool, run.settings.nested_starts):
         effect = pool[name]
-        if run.settings.nested_starts:
-            nested = {other: fits[other][0] for other in getattr(effect, "reduces_to", {}) if other in fits}
-            rows[name] = _candidate(run, reference, name, effect, loc, fits, nested=nested)
-        else:
-            rows[name] = _candidate(run, reference, name, effect, loc, fits)
+        nested = {other: fits[other][0] for other in getattr(effect, "reduces_to", {}) if other in fits}
+        rows[name] = _candidate(run, reference, name, effect, loc, fits, nested=nested)
     ranking = _ranked([rows[name] for name in pool])      # ties keep the catalogue's order
     if run.settings.screen_base_parameters is None:
         return ranking, fits
