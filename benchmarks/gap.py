@@ -533,6 +533,7 @@ def protocol_settings(protocol: dict) -> DiagnosisSettings:
     frozen.setdefault("decision_fits", False)
     frozen.setdefault("decision_stop", "extrapolated")
     frozen.setdefault("nested_starts", False)
+    frozen.setdefault("nested_start_tolerance", 0.0)
     return DiagnosisSettings(**frozen)
 
 

@@ -42,7 +42,7 @@ from gap import method_settings  # noqa: E402 - benchmarks/gap.py
 
 CANDIDATES = ("stribeck", "sensor_delay", "shaft_compliance", "load_dependent_friction")
 FAMILIES = set(CANDIDATES)
-VERSIONS = (1, 2, 3, 4, 5, 6, 7, 8)
+VERSIONS = (1, 2, 3, 4, 5, 6, 7, 8, 9)
 VARIANT, PARAMS = "stribeck_rational", {"ratio": 1.0, "speed": 1.5}
 BEFORE = {"htls": (92.0, 636)}            # the figures before the work (s, simulations)
 TARGET_S = {"htls": 20.0, "lths": 45.0}

@@ -107,7 +107,8 @@ def _refit(run: _Diagnosis, reference: _Reference, name: str, effect, start: np.
     Otherwise (the leaders' final refit): every parameter free from ``start``, capped at
     ``final_max_iterations``. With ``nested_starts`` a screening fit that ends below a model the
     form contains (:func:`_nested_points`; ``nested``: the refits of the forms this one reduces
-    to) is refitted from that model's point, the better fit kept.
+    to) by more than ``nested_start_tolerance`` in 2V is refitted from that model's point, the
+    better fit kept.
     Parameters the channels cannot determine, and with ``hold_base``
     every base parameter, stay held. Returns (augmented model, effect parameter names,
     FitResult, V of the estimate with every free parameter counted).
@@ -136,8 +137,13 @@ def _refit(run: _Diagnosis, reference: _Reference, name: str, effect, start: np.
     if start is None and settings.nested_starts:
         points, origins = _nested_points(augmented, reference, effect, nested or {})
         j, contained, predicted_points = _best_point(problem, points)
-        if np.isfinite(contained) and not np.nanmin(np.asarray(objectives + [np.inf])) <= contained:
-            run.say(f"  {name}: its fit ended below {origins[j]}, which it contains; refitted from there")
+        shortfall = 2.0 * (np.nanmin(np.asarray(objectives + [np.inf])) - contained)
+        if np.isfinite(contained) and 0 < shortfall <= settings.nested_start_tolerance:
+            run.say(f"  {name}: its fit ended {shortfall:.3g} in 2V below {origins[j]}, which it contains, "
+                    f"within the tolerance {settings.nested_start_tolerance:g}; not refitted")
+        elif np.isfinite(contained) and not shortfall <= settings.nested_start_tolerance:
+            run.say(f"  {name}: its fit ended {shortfall:.3g} in 2V below {origins[j]}, which it contains; "
+                    "refitted from there")
             fits.append(_screened_fit(run, problem, augmented, names, points[j], predicted_points[j], screening))
             objectives.append(_full_objective(problem, fits[-1].estimate, fits[-1].log_det_r))
     k = _finite_argmin(objectives)

@@ -178,8 +178,9 @@ class Effect:
     this one computes exactly at some values of its parameters, each as {own parameter: the
     other form's parameter whose value it takes, or a fixed number} (e.g. ``torque_ripple_harmonics``
     at zero harmonic ratios is ``torque_ripple`` with the fundamental's amplitude and phase): a
-    fit of this form can start where the other form's fit ended (method version 8 of the gap
-    diagnosis). Unlike ``nests`` it does not let a diagnosis leave the other form out.
+    fit of this form that ends below the other form's fit is refitted from the point where it
+    computes that fit (method versions 8 and 9 of the gap diagnosis). Unlike ``nests`` it does
+    not let a diagnosis leave the other form out.
     """
 
     name: str

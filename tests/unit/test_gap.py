@@ -393,6 +393,14 @@ def test_a_fit_that_ends_below_a_model_it_contains_is_refitted_from_that_model(m
     assert starts[1][0]["sensor_delay_dispersed_tau"] == pytest.approx(delay[2].value("sensor_delay_tau"), rel=1e-12)
     assert starts[1][0]["sensor_delay_dispersed_dispersion"] == 0.0
     assert objective == starts[1][1] <= delay[3] + 1e-9 * abs(delay[3])
+    shortfall = 2 * (starts[0][1] - delay[3])
+
+    for factor, refitted in ((1.05, False), (0.95, True)):     # version 9: a shortfall within the tolerance stands
+        starts.clear()
+        run.settings = replace(settings, nested_start_tolerance=factor * shortfall)
+        A._refit(run, reference, "sensor_delay_dispersed", dispersed, nested={"sensor_delay": delay})
+        assert len(starts) == (2 if refitted else 1)
+    run.settings = settings
 
     starts.clear()      # the same fit does not end below the model it is added to: not refitted
     A._refit(run, reference, "sensor_delay_dispersed", dispersed, nested={})
@@ -425,6 +433,18 @@ def test_method_version_8_is_version_4_with_nested_starts_only():
     assert all(method_switches(v)["nested_starts"] is False for v in range(1, 8))
     assert method_version_of(DiagnosisSettings(**method_switches(8))) == 8
     assert method_version_of(DiagnosisSettings()) == 4
+
+
+def test_method_version_9_is_version_8_refitting_past_the_evidence_margin_only():
+    from ema_uq.gap.strategy import DiagnosisSettings, method_switches, method_version_of
+    from ema_uq.gap.verdict import MARGIN_EVIDENCE
+
+    assert method_switches(9) == {**method_switches(8), "nested_start_tolerance": MARGIN_EVIDENCE}
+    assert all(method_switches(v)["nested_start_tolerance"] == 0.0 for v in range(1, 9))
+    assert method_version_of(DiagnosisSettings(**method_switches(9))) == 9
+    for bad in (-1.0, float("nan"), float("inf"), True, "10"):
+        with pytest.raises(ValueError, match="nested_start_tolerance must be a finite number"):
+            DiagnosisSettings(nested_start_tolerance=bad)
 
 
 # --------------------------------------------------------------------------------------
