@@ -25,6 +25,7 @@ Needs the record sets ($EMA_UQ_CRANFIELD_DIR or ../shared/data/real/cranfield_li
 """
 from __future__ import annotations
 
+import argparse
 import os
 import tempfile
 import time
@@ -63,6 +64,7 @@ def inject(healthy: pd.DataFrame, amplitude: float, centre: float | None, half: 
 
 
 def main() -> None:
+    argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args()
     healthy = pd.read_csv(io.cranfield_file("normal"))
     with tempfile.TemporaryDirectory() as folder:
         healthy.to_csv(Path(folder) / "normal.csv", index=False)

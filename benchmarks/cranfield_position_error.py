@@ -21,6 +21,8 @@ Needs the record sets ($EMA_UQ_CRANFIELD_DIR or ../shared/data/real/cranfield_li
 """
 from __future__ import annotations
 
+import argparse
+
 import numpy as np
 
 from ema_uq import io
@@ -54,6 +56,7 @@ def change(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
 
 
 def main() -> None:
+    argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args()
     figures = {name: run_figures(name) for name in SETS}
     healthy = figures["normal"]
     print("[[Change against the healthy set, same load]] mean over runs (Welch t)")

@@ -687,7 +687,7 @@ def main() -> None:
     parser.add_argument("--out", metavar="JSON", help="write scores and per-case table as JSON")
     parser.add_argument("--cache", metavar="DIR", help="keep each case's outcome there and read it back (resume)")
     parser.add_argument("--method-version", type=int, choices=tuple(METHOD_VERSIONS), default=DEFAULT_METHOD_VERSION,
-                        help="; ".join(f"{v}: {what}" for v, what in METHOD_VERSIONS.items())
+                        help="; ".join(f"{v}: {what}" for v, what in METHOD_VERSIONS.items()).replace("%", "%%")
                         + f" (default {DEFAULT_METHOD_VERSION})")
     args = parser.parse_args()
 
