@@ -768,6 +768,57 @@ def test_the_paired_rule_switches_only_when_the_challenger_loses_nothing_on_the_
     assert "not decided" in partial.summary(partial_figures=True)
 
 
+# --------------------------------------------------------------------------------------
+# a development run against the incumbent's outcomes of the same records (benchmarks/gap_development.py)
+# --------------------------------------------------------------------------------------
+def _development_script(monkeypatch):
+    spec = importlib.util.spec_from_file_location("gap_development_bench", ROOT / "benchmarks" / "gap_development.py")
+    module = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, spec.name, module)     # its dataclass looks its module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+def _write_outcomes(folder: Path, result) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    for o in result.outcomes:
+        (folder / f"{o.case.case_id.replace('/', '__')}.json").write_text(json.dumps(o.to_json()))
+    return folder
+
+
+def test_the_development_rule_reads_each_condition_on_the_shared_records(monkeypatch, tmp_path):
+    development = _development_script(monkeypatch)
+    read = development.read_outcomes
+    incumbent = read(_write_outcomes(tmp_path / "v4", _block()))
+    same = development.read_rule(incumbent, read(_write_outcomes(tmp_path / "same", _block())))
+    assert same.complete and same.passes and not same.differing() and same.moved() == 0
+    # one left-out record fewer flagged is within the rule's slack; one in-catalogue hit fewer is not
+    slack = development.read_rule(incumbent, read(_write_outcomes(tmp_path / "slack", _block(left_out="none"))))
+    assert slack.passes and [held for *_, held in slack.rows] == [True] * 5
+    worse = development.read_rule(incumbent, read(_write_outcomes(tmp_path / "worse", _block(top1_right=False))))
+    assert [held for *_, held in worse.rows] == [False, True, True, True, True] and not worse.passes
+    assert len(worse.differing()) == 1 and "htls/full/backlash_v/1" in worse.differing()[0]
+    # a no-effect record naming a family, or a wrong family named with high confidence, fails outright
+    named = _block()
+    named.outcomes[5] = _outcome("none", None, "effect", "stribeck", index=5)
+    named.outcomes[4] = _outcome("out_of_catalogue", None, "effect", "stribeck", "high", index=4)
+    failed = development.read_rule(incumbent, read(_write_outcomes(tmp_path / "named", named)))
+    assert [label for label, *_, held in failed.rows if not held] == [
+        "(c) out of catalogue named a family", "(d) no-effect records naming a family",
+        "(e) wrong family named with high confidence"]
+    # a run not yet complete decides nothing; a case the incumbent lacks stops the reading
+    partial = _block()
+    partial.outcomes = partial.outcomes[:5]
+    reading = development.read_rule(incumbent, read(_write_outcomes(tmp_path / "partial", partial)))
+    assert not reading.complete and not reading.passes and "PARTIAL (5 of the incumbent's 8 cases)" in reading.summary()
+    stray = _block()
+    stray.outcomes.append(_outcome("none", None, "none", index=99))
+    with pytest.raises(SystemExit, match="not in the incumbent's folder"):
+        development.read_rule(incumbent, read(_write_outcomes(tmp_path / "stray", stray)))
+    with pytest.raises(SystemExit, match="no such folder"):
+        read(tmp_path / "missing")
+
+
 def test_the_paired_reading_needs_the_same_block_and_only_its_cases(monkeypatch, tmp_path):
     paired = _paired_script(monkeypatch)
     protocol = yaml.safe_load((ROOT / "benchmarks" / "gap_protocol_v7.yaml").read_text(encoding="utf-8"))
