@@ -26,6 +26,7 @@ import argparse
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Sequence
 
 from ema_uq.gap.selfcheck_scores import CaseOutcome, SelfCheckResult
 
@@ -55,6 +56,20 @@ def read_outcomes(folder: Path) -> dict[str, CaseOutcome]:
     return out
 
 
+def differing_lines(incumbent: Sequence[CaseOutcome], other: Sequence[CaseOutcome]) -> list[str]:
+    """One line per case whose verdict, family or confidence differ between two versions'
+    outcomes of the same cases (``other`` holds every case of ``incumbent``)."""
+    theirs = {o.case.case_id: o for o in other}
+    lines = []
+    for mine in incumbent:
+        their = theirs[mine.case.case_id]
+        if (mine.verdict, mine.family, mine.confidence) != (their.verdict, their.family, their.confidence):
+            lines.append(f"    {mine.case.case_id}: {mine.label} ({mine.confidence}, "
+                         f"{'ok' if mine.correct else 'wrong'}) -> {their.label} ({their.confidence}, "
+                         f"{'ok' if their.correct else 'wrong'})")
+    return lines
+
+
 def _count(result: SelfCheckResult, what: str) -> tuple[int, int]:
     if what == "out_of_catalogue_named":
         cases = result.of("out_of_catalogue")
@@ -79,15 +94,7 @@ class DevelopmentReading:
         return self.complete and all(held for *_, held in self.rows)
 
     def differing(self) -> list[str]:
-        theirs = {o.case.case_id: o for o in self.candidate.outcomes}
-        lines = []
-        for mine in self.incumbent.outcomes:
-            other = theirs[mine.case.case_id]
-            if (mine.verdict, mine.family, mine.confidence) != (other.verdict, other.family, other.confidence):
-                lines.append(f"    {mine.case.case_id}: {mine.label} ({mine.confidence}, "
-                             f"{'ok' if mine.correct else 'wrong'}) -> {other.label} ({other.confidence}, "
-                             f"{'ok' if other.correct else 'wrong'})")
-        return lines
+        return differing_lines(self.incumbent.outcomes, self.candidate.outcomes)
 
     def moved(self) -> int:
         """Records where the top three forms or their ΔBIC (to 0.1) differ."""

@@ -35,6 +35,7 @@ from pathlib import Path
 from ema_uq.gap.selfcheck import build_cases
 from ema_uq.gap.selfcheck_scores import TARGETS, Case, CaseOutcome, SelfCheckResult
 from gap import cases_by_environment, load_protocol
+from gap_development import differing_lines
 
 #: the self-check targets the challenger must also meet on its own, as point values (conditions
 #: (b) and (c) of the rules before): flags >= 0.85, wrong family high <= 0.02, no-effect naming <= 0.05
@@ -72,15 +73,7 @@ class PairedReading:
 
     def differing(self) -> list[str]:
         """The cases whose verdict, family or confidence differ between the versions."""
-        theirs = {o.case.case_id: o for o in self.challenger.outcomes}
-        lines = []
-        for mine in self.incumbent.outcomes:
-            other = theirs[mine.case.case_id]
-            if (mine.verdict, mine.family, mine.confidence) != (other.verdict, other.family, other.confidence):
-                lines.append(f"    {mine.case.case_id}: {mine.label} ({mine.confidence}, "
-                             f"{'ok' if mine.correct else 'wrong'}) -> {other.label} ({other.confidence}, "
-                             f"{'ok' if other.correct else 'wrong'})")
-        return lines
+        return differing_lines(self.incumbent.outcomes, self.challenger.outcomes)
 
     def environment_lines(self) -> list[str]:
         """Which library versions diagnosed how many cases of each version; a warning when the
