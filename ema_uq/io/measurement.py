@@ -168,6 +168,11 @@ def _read_csv(path: Path) -> tuple[dict[str, np.ndarray], dict[str, str], dict[s
         raise _fail(path, f"column(s) {', '.join(duplicated)} appear more than once in the header; keep one of each")
     if "" in header:
         raise _fail(path, "the header row has an empty column name; name every column")
+    # pandas pads a short row with NaN, which would read a cut-off line as missing samples
+    for number, line in enumerate(body_lines[1:], start=n_comments + 2):
+        if line.strip() and line.count(",") < len(header) - 1:
+            raise _fail(path, f"line {number} has {line.count(',') + 1} of the header's {len(header)} fields; "
+                              "every row needs one number per header column ('nan' or empty for a missing sample)")
     try:
         frame = pd.read_csv(path, skiprows=n_comments, header=0, names=header, dtype=float,
                             skipinitialspace=True, comment=None, encoding="utf-8-sig")
