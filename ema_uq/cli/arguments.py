@@ -37,7 +37,7 @@ def fraction(text: str) -> float:
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
     if not (math.isfinite(value) and value >= 0):
-        raise argparse.ArgumentTypeError(f"{text!r} must be a finite fraction >= 0 (0.02 is 2 % of the channel RMS)")
+        raise argparse.ArgumentTypeError(f"{text!r} must be a finite fraction >= 0")
     return value
 
 
