@@ -36,13 +36,14 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 from ema_uq.gap.attribute import diagnose  # noqa: E402 - after the thread settings
 from ema_uq.gap.candidates import offered_forms  # noqa: E402
+from ema_uq.gap.strategy import METHOD_VERSIONS  # noqa: E402
 from ema_uq.models import get_model  # noqa: E402
 from ema_uq.gap.variants import make_records  # noqa: E402
 from gap import method_settings  # noqa: E402 - benchmarks/gap.py
 
 CANDIDATES = ("stribeck", "sensor_delay", "shaft_compliance", "load_dependent_friction")
 FAMILIES = set(CANDIDATES)
-VERSIONS = (1, 2, 3, 4, 5, 6, 7, 8, 9)
+VERSIONS = tuple(METHOD_VERSIONS)
 VARIANT, PARAMS = "stribeck_rational", {"ratio": 1.0, "speed": 1.5}
 BEFORE = {"htls": (92.0, 636)}            # the figures before the work (s, simulations)
 TARGET_S = {"htls": 20.0, "lths": 45.0}

@@ -151,7 +151,9 @@ METHOD_VERSIONS = {1: "the nominal model's kinematics and command taken as exact
                       "reference model, or a form it reduces to, as fitted) is refitted from that model's point, "
                       "the better fit kept (a form can fit no worse than the models it contains)",
                    9: "8 refitting only a fit that ends more than the evidence margin (10 in 2V) below a model its "
-                      "form contains: a smaller shortfall moves no verdict (version 8 cost 15-19 % more time)"}
+                      "form contains: a smaller shortfall moves no verdict (version 8 cost 15-19 % more time)",
+                   10: "4 at the model contract's converged step where no effect brings faster dynamics (version 3's "
+                       "step on the default's forms, judged by a paired non-inferiority rule)"}
 
 #: the version ``DiagnosisSettings()`` gives: 4 since its evaluation block 5205 met its rule (version 2 before)
 DEFAULT_METHOD_VERSION = 4
@@ -167,6 +169,8 @@ def method_switches(version: int) -> dict[str, Any]:
         return {**method_switches(4), "nested_starts": True}
     if version == 9:
         return {**method_switches(8), "nested_start_tolerance": MARGIN_EVIDENCE}
+    if version == 10:
+        return {**method_switches(4), "converged_step": True}
     return {"model_form_allowance": version >= 2, "converged_step": version in (3, 5, 6, 7),
             "spanning_forms": version >= 4, "operating_point_forms": version >= 5, "nested_forms": version < 5,
             "decision_fits": version >= 6, "decision_stop": "predicted" if version >= 7 else "extrapolated",

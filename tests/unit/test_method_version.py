@@ -18,8 +18,10 @@ def test_the_default_settings_are_the_default_version_and_every_version_differs(
     switches = [method_switches(v) for v in METHOD_VERSIONS]
     assert all(a != b for i, a in enumerate(switches) for b in switches[i + 1:])
     assert method_switches(7)["decision_stop"] == "predicted" and not method_switches(1)["model_form_allowance"]
-    with pytest.raises(ValueError, match="no gap method version 10; choose from 1, 2, 3, 4, 5, 6, 7, 8, 9"):
-        method_switches(10)
+    # version 10 is the default's forms and fits at the converged step, nothing else
+    assert {k for k, v in method_switches(10).items() if method_switches(4)[k] != v} == {"converged_step"}
+    with pytest.raises(ValueError, match="no gap method version 11; choose from 1, 2, 3, 4, 5, 6, 7, 8, 9, 10"):
+        method_switches(11)
 
 
 def _study(tmp_path, concept: str, **gap) -> str:
@@ -33,7 +35,7 @@ def test_a_study_names_the_version_for_both_gap_verbs_and_not_for_a_measured_rig
     assert settings_for(study, "gap")["method_version"] == 7 == settings_for(study, "gap-selfcheck")["method_version"]
     assert settings_for(load_study(_study(tmp_path, "lths")), "gap")["method_version"] is None
     with pytest.raises(StudyError, match="method_version"):
-        load_study(_study(tmp_path, "htls", method_version=10))
+        load_study(_study(tmp_path, "htls", method_version=11))
     with pytest.raises(StudyError, match="'gap.method_version'.*measured rig"):
         load_study(_study(tmp_path, "cranfield", method_version=7))
 
@@ -73,11 +75,11 @@ def test_the_gap_verb_diagnoses_with_the_version_asked_for_and_says_which(short_
     assert seen[1] == dataclasses.replace(seen[0], **method_switches(other))    # the rest of the strategy's settings kept
     assert seen[2] == dataclasses.replace(seen[0], **method_switches(2))
     capsys.readouterr()
-    assert cli.main(["gap", str(record), "--concept", "htls", "--method-version", "10", "--out",
-                     str(tmp_path / "g10.json")]) == 2
+    assert cli.main(["gap", str(record), "--concept", "htls", "--method-version", "11", "--out",
+                     str(tmp_path / "g11.json")]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "--method-version 10: no gap method version 10" in err
-    assert not (tmp_path / "g10.json").exists()
+    assert err.count("\n") == 1 and "--method-version 11: no gap method version 11" in err
+    assert not (tmp_path / "g11.json").exists()
 
 
 def test_settings_name_their_version_or_none():

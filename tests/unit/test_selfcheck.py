@@ -378,8 +378,9 @@ def test_a_method_version_is_frozen_with_its_own_settings_and_catalogue(tmp_path
     assert bench.protocol_settings(frozen).nested_starts is False    # a protocol frozen before the switch
     assert bench.method_settings(9).nested_start_tolerance == 10.0 and bench.method_settings(9).nested_starts
     assert bench.protocol_settings(frozen).nested_start_tolerance == 0.0
-    with pytest.raises(SystemExit, match="no gap method version 10"):
-        bench.method_settings(10)
+    assert bench.method_settings(10).converged_step and not bench.method_settings(4).converged_step
+    with pytest.raises(SystemExit, match="no gap method version 11"):
+        bench.method_settings(11)
 
 
 def test_the_committed_protocol_fixes_catalogue_thresholds_and_blocks():
