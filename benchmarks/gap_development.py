@@ -5,20 +5,25 @@ A development run (``benchmarks/gap.py --seed S --method-version N --cache DIR``
 outcome file per case. This script reads two such folders (or an evaluation block's seed folder
 for the incumbent), keeps the cases both have run, prints both versions' counts side by side,
 every case whose verdict, family or confidence differs, and how many records had a form of the
-top three move, and reads the development rule of docs/gap-diagnosis.md (method versions 8 and 9):
+top three move, and reads one of the development rules of docs/gap-diagnosis.md.
 
+``--rule nested-starts`` (the default; method versions 8 and 9):
 (a) in-catalogue family top-1 does not fall;
 (b) left-out records are flagged at least as often, less one case;
 (c) no more out-of-catalogue records are named a family;
 (d) no no-effect record names a family;
 (e) no wrong family is named with high confidence.
 
+``--rule non-inferiority`` (method version 10, a change of numerical accuracy far under the noise,
+which moves only verdicts at a threshold's edge, either way): one record of slack on every count,
+(a) and (b) at least the incumbent's less one, (c), (d) and (e) at most the incumbent's plus one.
+
 Rule (f), the time per case, is measured side by side on one record (``benchmarks/gap_speed.py``):
 stored wall times of runs on a busy machine say nothing about it, so they are shown, not read.
 The rule is read only when the candidate has run every case the incumbent has; before that the
 figures are marked partial and decide nothing.
 
-Usage: python benchmarks/gap_development.py --incumbent DIR --candidate DIR
+Usage: python benchmarks/gap_development.py --incumbent DIR --candidate DIR [--rule nested-starts|non-inferiority]
 """
 from __future__ import annotations
 
@@ -36,6 +41,10 @@ CONDITIONS = (("(a) in-catalogue family top-1", "top1", "at least"),
               ("(c) out of catalogue named a family", "out_of_catalogue_named", "at most"),
               ("(d) no-effect records naming a family", "false_alarms", "none"),
               ("(e) wrong family named with high confidence", "wrong_family_confident", "none"))
+#: the rule of method version 10: one record of slack on each count, either way (module docstring)
+NON_INFERIORITY = tuple((label, what, "at least, less one" if side.startswith("at least") else "at most, plus one")
+                        for label, what, side in CONDITIONS)
+RULES = {"nested-starts": CONDITIONS, "non-inferiority": NON_INFERIORITY}
 
 
 def read_outcomes(folder: Path) -> dict[str, CaseOutcome]:
@@ -121,8 +130,9 @@ class DevelopmentReading:
         return "\n".join(lines)
 
 
-def read_rule(incumbent: dict[str, CaseOutcome], candidate: dict[str, CaseOutcome]) -> DevelopmentReading:
-    """The development rule on the cases both folders hold."""
+def read_rule(incumbent: dict[str, CaseOutcome], candidate: dict[str, CaseOutcome],
+              rule: str = "nested-starts") -> DevelopmentReading:
+    """The development rule ``rule`` (:data:`RULES`) on the cases both folders hold."""
     foreign = sorted(set(candidate) - set(incumbent))
     if foreign:
         raise SystemExit(f"{len(foreign)} case(s) of the candidate are not in the incumbent's folder (e.g. "
@@ -136,9 +146,10 @@ def read_rule(incumbent: dict[str, CaseOutcome], candidate: dict[str, CaseOutcom
     mine = SelfCheckResult([incumbent[i] for i in shared], seed, False, 0.0)
     theirs = SelfCheckResult([candidate[i] for i in shared], seed, False, 0.0)
     rows = []
-    for label, what, side in CONDITIONS:
+    for label, what, side in RULES[rule]:
         (a, n), (b, m) = _count(mine, what), _count(theirs, what)
-        held = {"at least": b >= a, "at least, less one": b >= a - 1, "at most": b <= a, "none": b == 0}[side]
+        held = {"at least": b >= a, "at least, less one": b >= a - 1, "at most": b <= a,
+                "at most, plus one": b <= a + 1, "none": b == 0}[side]
         rows.append((label, f"{a}/{n}", f"{b}/{m}", held))
     return DevelopmentReading(mine, theirs, rows, len(shared) == len(incumbent), len(incumbent))
 
@@ -147,8 +158,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--incumbent", required=True, metavar="DIR", help="the incumbent's outcomes of the block")
     parser.add_argument("--candidate", required=True, metavar="DIR", help="the development run's --cache folder")
+    parser.add_argument("--rule", choices=tuple(RULES), default="nested-starts",
+                        help="nested-starts: versions 8 and 9; non-inferiority: version 10 (module docstring)")
     args = parser.parse_args()
-    print(read_rule(read_outcomes(Path(args.incumbent)), read_outcomes(Path(args.candidate))).summary())
+    print(read_rule(read_outcomes(Path(args.incumbent)), read_outcomes(Path(args.candidate)), args.rule).summary())
 
 
 if __name__ == "__main__":

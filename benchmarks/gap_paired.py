@@ -17,13 +17,18 @@ and reads the rule:
   high confidence at most 0.02 of the records that carry an effect, and at most 0.05 of the
   no-effect records name a family.
 
+``--slack 1`` (the non-inferiority rule of method version 10, a change of numerical accuracy far
+under the noise, which moves only verdicts at a threshold's edge, either way) gives each paired
+count one record of slack: at least the incumbent's less one, at most the incumbent's plus one;
+the challenger's own bounds stay as they are.
+
 The rule is read only when both versions have run every case of the block. Before that the
 script prints only how many cases each version has run: a look at partial figures invites
 stopping a run early on a good or a bad look. ``--partial-figures`` prints the shared cases'
 figures anyway, marked partial (for a check of the script, not of the methods).
 
 Usage: python benchmarks/gap_paired.py --incumbent PROTOCOL RESULTS --challenger PROTOCOL RESULTS
-                                       [--partial-figures]
+                                       [--slack 1] [--partial-figures]
 """
 from __future__ import annotations
 
@@ -116,12 +121,13 @@ def _count(result: SelfCheckResult, prop: str) -> tuple[int, int, float]:
 
 
 def read_rule(incumbent: SelfCheckResult, challenger: SelfCheckResult, n_block: int,
-              runs: tuple[int, int] | None = None) -> PairedReading:
-    """The rule of the module docstring on two versions' outcomes of the same cases."""
+              runs: tuple[int, int] | None = None, slack: int = 0) -> PairedReading:
+    """The rule of the module docstring on two versions' outcomes of the same cases; ``slack``
+    records allowed on each paired count (0: none)."""
     conditions = []
     for label, prop, side in PAIRED_CONDITIONS:
         (a, n, _), (b, m, _) = _count(incumbent, prop), _count(challenger, prop)
-        conditions.append((label, f"{a}/{n}", f"{b}/{m}", b >= a if side == ">=" else b <= a))
+        conditions.append((label, f"{a}/{n}", f"{b}/{m}", b >= a - slack if side == ">=" else b <= a + slack))
     for key, label in OWN_TARGETS.items():
         prop, bound, side = TARGETS[key]
         count, n, value = _count(challenger, prop)
@@ -174,7 +180,7 @@ def _record(case: Case) -> Case:
     return replace(case, candidates=None)
 
 
-def compare(incumbent: tuple[str, str], challenger: tuple[str, str]) -> PairedReading:
+def compare(incumbent: tuple[str, str], challenger: tuple[str, str], slack: int = 0) -> PairedReading:
     """Read the rule on the outcomes of two (protocol, results folder) pairs of the same block."""
     protocols = [load_protocol(p) for p, _ in (incumbent, challenger)]
     blocks = [p["blocks"]["evaluation"]["seeds"] for p in protocols]
@@ -195,7 +201,7 @@ def compare(incumbent: tuple[str, str], challenger: tuple[str, str]) -> PairedRe
     shared = [i for i in ids if i in mine and i in theirs]
     reading = read_rule(SelfCheckResult([mine[i] for i in shared], int(blocks[0][0]), False, 0.0),
                         SelfCheckResult([theirs[i] for i in shared], int(blocks[0][0]), False, 0.0), len(ids),
-                        runs=(len(mine), len(theirs)))
+                        runs=(len(mine), len(theirs)), slack=slack)
     return replace(reading, environments=(environments(Path(incumbent[1])), environments(Path(challenger[1]))))
 
 
@@ -205,8 +211,10 @@ def main() -> None:
     parser.add_argument("--challenger", nargs=2, required=True, metavar=("PROTOCOL", "RESULTS"))
     parser.add_argument("--partial-figures", action="store_true",
                         help="print the shared cases' figures before the block is complete (they decide nothing)")
+    parser.add_argument("--slack", type=int, choices=(0, 1), default=0,
+                        help="records of slack on each paired count: 0 (versions 7 and 9), 1 (version 10)")
     args = parser.parse_args()
-    print(compare(tuple(args.incumbent), tuple(args.challenger)).summary(args.partial_figures))
+    print(compare(tuple(args.incumbent), tuple(args.challenger), args.slack).summary(args.partial_figures))
 
 
 if __name__ == "__main__":

@@ -757,6 +757,13 @@ def test_the_paired_rule_switches_only_when_the_challenger_loses_nothing_on_the_
     unflagged = paired.read_rule(_block(), _block(left_out="none"), n_block=8)
     failed = [label for label, *_, held in unflagged.conditions if not held]
     assert failed == ["left out flagged", "challenger's left out flagged"] and not unflagged.switch
+    # with one record of slack (version 10's rule) one in-catalogue record fewer passes, two do not
+    assert paired.read_rule(_block(), _block(top1_right=False), n_block=8, slack=1).switch
+    two_fewer = _block(top1_right=False)
+    two_fewer.outcomes[0] = _outcome("effect", "stribeck", "effect", "backlash", "low", index=0)
+    assert not paired.read_rule(_block(), two_fewer, n_block=8, slack=1).switch
+    # the challenger's own bounds get no slack: a left-out record unflagged still fails its 0.85 floor
+    assert not paired.read_rule(_block(), _block(left_out="none"), n_block=8, slack=1).switch
     # the incumbent doing worse on the same cases does not stop the challenger
     assert paired.read_rule(_block(top1_right=False), _block(), n_block=8).switch
     # a block not yet complete decides nothing, however the counts stand
@@ -807,6 +814,16 @@ def test_the_development_rule_reads_each_condition_on_the_shared_records(monkeyp
     assert [label for label, *_, held in failed.rows if not held] == [
         "(c) out of catalogue named a family", "(d) no-effect records naming a family",
         "(e) wrong family named with high confidence"]
+    # the non-inferiority rule (version 10) gives one record of slack on every count, and no more
+    lenient = development.read_rule(incumbent, read(tmp_path / "named"), "non-inferiority")
+    assert lenient.passes and [held for *_, held in lenient.rows] == [True] * 5
+    assert development.read_rule(incumbent, read(tmp_path / "worse"), "non-inferiority").passes
+    twice = _block()
+    twice.outcomes[5] = _outcome("none", None, "effect", "stribeck", index=5)
+    twice.outcomes[6] = _outcome("none", None, "effect", "stribeck", index=6)
+    two = development.read_rule(incumbent, read(_write_outcomes(tmp_path / "twice", twice)), "non-inferiority")
+    assert [label for label, *_, held in two.rows if not held] == ["(d) no-effect records naming a family"]
+    assert not two.passes
     # a run not yet complete decides nothing; a case the incumbent lacks stops the reading
     partial = _block()
     partial.outcomes = partial.outcomes[:5]
