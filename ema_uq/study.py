@@ -3,6 +3,7 @@ Snakefile alike), with defaults filled in."""
 from __future__ import annotations
 
 import json
+import math
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -62,9 +63,14 @@ def _check_semantics(study: dict, source: str) -> None:
     for name in study["identify"].get("fix", []):
         if name not in model.parameters:
             raise StudyError(f"{source}: key 'identify.fix': unknown parameter {name!r} for {model.name}")
-    for name in study["data"].get("set", {}):
+    for name, value in study["data"].get("set", {}).items():
         if name not in model.parameters and name not in model.constants:
             raise StudyError(f"{source}: key 'data.set': unknown parameter or constant {name!r} for {model.name}")
+        # checked here, not only by the verb that first reads it, so a workflow stops before any job
+        p = (model.parameters if name in model.parameters else model.constants)[name]
+        if not (math.isfinite(value) and p.lower <= value <= p.upper):
+            raise StudyError(f"{source}: key 'data.set': {name} = {value} lies outside its bounds "
+                             f"[{p.lower:g}, {p.upper:g}]; give a finite value inside them")
     channels = study["data"].get("channels")
     if channels:
         for ch in channels:
