@@ -249,7 +249,11 @@ def _run_sample(args: argparse.Namespace) -> str:
     if args.walkers is not None and args.walkers < 2:
         raise CLIError(f"--walkers {args.walkers}: give at least 2 walkers")
     out = io.prepare_output(args.out)
+    if out.suffix.lower() != ".nc":
+        raise CLIError(f"--out {out}: the posterior is written as ArviZ NetCDF; give a .nc file, e.g. posterior.nc")
     backend = Path(args.backend) if args.backend else out.with_suffix(".h5")
+    if backend.resolve() == out.resolve():
+        raise CLIError(f"--backend {backend} is the --out file; the chains and the posterior need two files")
     io.prepare_output(backend)
     priors = {}
     for text in args.prior:

@@ -620,3 +620,9 @@ def test_sample_verb_end_to_end_and_errors(data, fit, tmp_path):
         assert proc.returncode == 2, (extra, proc.stderr)
         assert proc.stderr.count("\n") == 1 and message in proc.stderr, proc.stderr
         assert not (tmp_path / "bad.nc").exists()
+    # an output the posterior cannot be, or one that is the chains' own file, stops before sampling
+    for out, backend, message in [("other.txt", "chains.h5", "give a .nc file"),
+                                  ("same.nc", "same.nc", "the chains and the posterior need two files")]:
+        proc = run_cli("sample", *common, "--out", str(tmp_path / out), "--backend", str(tmp_path / backend))
+        assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and message in proc.stderr, proc.stderr
+        assert not (tmp_path / out).exists() and not (tmp_path / "chains.h5").exists()
