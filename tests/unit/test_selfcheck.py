@@ -910,7 +910,7 @@ def test_a_block_folder_says_which_library_versions_diagnosed_which_cases(monkey
         bench.cases_by_environment(folder)
 
 
-@pytest.mark.parametrize("block, version", [(5209, 4), (5209, 7), (5210, 4), (5210, 9)])
+@pytest.mark.parametrize("block, version", [(5209, 4), (5209, 7), (5210, 4), (5210, 9), (5210, 10)])
 def test_the_paired_block_protocols_freeze_their_versions_method_on_a_block_no_protocol_has_run(block, version):
     bench = _bench()
     paired = bench.load_protocol(ROOT / "benchmarks" / f"gap_protocol_paired{block}_v{version}.yaml")
